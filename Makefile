@@ -1,0 +1,32 @@
+# Quickstart: `make demo` and `make test`. Both create .venv and install the package first.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test lint bench experiments clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/cpf-track walk_across_medium --particles 200 --seed 0 --out demo_boxes.csv --rrd demo.rrd
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check cpf_jax kernels tests experiments
+
+bench: $(STAMP)
+	$(BIN)/python experiments/bench_colour.py
+	$(BIN)/python experiments/bench_depth.py
+
+experiments: $(STAMP)
+	$(BIN)/python experiments/colour_tables.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info demo.rrd demo_boxes.csv
