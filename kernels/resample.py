@@ -126,8 +126,10 @@ def residual(key: Array, log_weights: Array, num: int | None = None) -> Array:
     det_idx = jnp.clip(jnp.searchsorted(ends, slots, side="right"), 0, n - 1)
     resid = scaled - copies
     resid_log = jnp.where(resid > 0, jnp.log(jnp.where(resid > 0, resid, 1.0)), -jnp.inf)
-    rand_idx = multinomial(key, resid_log, num)
-    # Multinomial draws are sorted; any of them can fill the remaining slots.
+    # Independent (unsorted) draws from the residual weights fill the remaining
+    # slots; sorted draws would bias the first slots towards low indices.
+    u = jax.random.uniform(key, (num,), jnp.float32)
+    rand_idx = _search(_weights(resid_log), u)
     rand_for_slot = rand_idx[jnp.clip(slots - n_det, 0, num - 1)]
     return jnp.where(slots < n_det, det_idx, rand_for_slot).astype(jnp.int32)
 

@@ -1,0 +1,116 @@
+"""Resampling schemes: statistical properties over many keys, degenerate weights, jit and vmap."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cpf_jax.kernels import resample as rs
+
+WEIGHTS = np.array([0.05, 0.0, 0.3, 0.15, 0.4, 0.1], np.float32)
+N = WEIGHTS.size
+
+
+def _counts(indices, n):
+    return np.stack([np.bincount(np.asarray(i), minlength=n) for i in indices])
+
+
+@pytest.fixture(scope="module")
+def draws():
+    """20,000 resamples per scheme (vmapped over keys, jitted once per scheme)."""
+    keys = jax.random.split(jax.random.PRNGKey(0), 20_000)
+    lw = jnp.log(jnp.asarray(WEIGHTS))
+    return {
+        name: np.asarray(jax.jit(jax.vmap(lambda k, f=f: f(k, lw)))(keys))
+        for name, f in rs.SCHEMES.items()
+    }
+
+
+@pytest.mark.parametrize("name", list(rs.SCHEMES))
+def test_unbiased_offspring_counts(draws, name):
+    counts = _counts(draws[name], N)
+    mean = counts.mean(axis=0)
+    expected = N * WEIGHTS
+    # standard error of a count's mean is at most sqrt(N w (1-w) / 20000) < 0.01
+    np.testing.assert_allclose(mean, expected, atol=0.03)
+    assert counts[:, 1].max() == 0, "a zero-weight particle was selected"
+    assert (counts.sum(axis=1) == N).all()
+
+
+@pytest.mark.parametrize("name", ["systematic", "stratified", "residual"])
+def test_low_variance_schemes_keep_floor_copies(draws, name):
+    counts = _counts(draws[name], N)
+    floor = np.floor(N * WEIGHTS)
+    if name == "systematic":
+        # systematic: every count is floor or ceil of N w_i
+        assert ((counts >= floor) & (counts <= np.ceil(N * WEIGHTS))).all()
+    if name == "residual":
+        assert (counts >= floor).all()
+
+
+def test_variance_ordering(draws):
+    """Systematic and stratified resampling have lower offspring variance than multinomial."""
+    var = {k: _counts(v, N).var(axis=0).sum() for k, v in draws.items()}
+    assert var["systematic"] < var["multinomial"]
+    assert var["stratified"] < var["multinomial"]
+    assert var["residual"] < var["multinomial"]
+
+
+@pytest.mark.parametrize("name", list(rs.SCHEMES))
+def test_all_invalid_weights_give_uniform_defined_result(name):
+    f = rs.SCHEMES[name]
+    keys = jax.random.split(jax.random.PRNGKey(1), 2000)
+    for bad in (jnp.full((N,), -jnp.inf), jnp.full((N,), jnp.nan)):
+        idx = np.asarray(jax.vmap(lambda k, b=bad: f(k, b))(keys))
+        assert idx.min() >= 0 and idx.max() < N
+        mean = _counts(idx, N).mean(axis=0)
+        np.testing.assert_allclose(mean, np.ones(N), atol=0.1)
+    assert bool(rs.all_weights_invalid(jnp.full((N,), -jnp.inf)))
+    assert not bool(rs.all_weights_invalid(jnp.array([-jnp.inf, 0.0])))
+
+
+def test_nan_entry_counts_as_zero_weight():
+    lw = jnp.array([0.0, jnp.nan, 0.0, -jnp.inf])
+    w = np.exp(np.asarray(rs.normalise_log_weights(lw)))
+    np.testing.assert_allclose(w, [0.5, 0.0, 0.5, 0.0], atol=1e-6)
+    idx = np.asarray(rs.systematic(jax.random.PRNGKey(0), lw))
+    assert set(idx.tolist()) <= {0, 2}
+
+
+def test_num_differs_from_n_and_huge_log_weights():
+    lw = jnp.array([1e4, 1e4 - 1.0, -1e4], jnp.float32)  # would overflow exp without the shift
+    idx = rs.systematic(jax.random.PRNGKey(3), lw, 1000)
+    assert idx.shape == (1000,)
+    counts = np.bincount(np.asarray(idx), minlength=3)
+    p0 = 1 / (1 + np.exp(-1.0))
+    assert abs(counts[0] / 1000 - p0) < 0.002 and counts[2] == 0
+
+
+def test_effective_sample_size():
+    n = 128
+    assert float(rs.effective_sample_size(jnp.zeros(n))) == pytest.approx(n, rel=1e-5)
+    one_hot = jnp.full(n, -jnp.inf).at[7].set(0.0)
+    assert float(rs.effective_sample_size(one_hot)) == pytest.approx(1.0)
+    w = np.random.default_rng(0).random(n).astype(np.float32)
+    ref = w.sum() ** 2 / (w**2).sum()
+    assert float(rs.effective_sample_size(jnp.log(w))) == pytest.approx(ref, rel=1e-4)
+    assert float(rs.effective_sample_size(jnp.full(n, -jnp.inf))) == pytest.approx(n, rel=1e-5)
+
+
+def test_resample_if_threshold_and_jit_vmap():
+    particles = {"x": jnp.arange(6.0), "v": jnp.arange(6.0) * 10}
+    lw = jnp.log(jnp.asarray(WEIGHTS))
+    key = jax.random.PRNGKey(0)
+    p0, lw0, did0 = rs.resample_if(key, lw, particles, 0.0)
+    assert not bool(did0)
+    np.testing.assert_allclose(np.exp(np.asarray(lw0)), WEIGHTS, rtol=1e-5)
+    jitted = jax.jit(lambda k, l: rs.resample_if(k, l, particles, 1.0))
+    p1, lw1, did1 = jitted(key, lw)
+    assert bool(did1)
+    np.testing.assert_allclose(np.asarray(lw1), np.full(6, -np.log(6)), rtol=1e-6)
+    # ancestors are resampled jointly across the pytree
+    np.testing.assert_allclose(np.asarray(p1["v"]), np.asarray(p1["x"]) * 10)
+    # batched over keys
+    keys = jax.random.split(key, 8)
+    pb, lwb, didb = jax.vmap(lambda k: rs.resample_if(k, lw, particles, 1.0))(keys)
+    assert pb["x"].shape == (8, 6) and bool(jnp.all(didb))
