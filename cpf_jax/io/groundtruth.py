@@ -1,0 +1,70 @@
+"""Ground-truth box files (OTB ``groundtruth_rect.txt`` and alike).
+
+One line per frame, ``x, y, w, h`` separated by commas, whitespace, tabs or
+semicolons. OTB stores 1-based top-left corners; they are converted to the
+package's 0-based convention by subtracting 1 from ``x`` and ``y``. A line of
+``0,0,0,0`` (or NaN, or a non-positive size) means the target is not visible;
+its row is returned as ``0, 0, 0, 0`` with ``visible = False``.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from cpf_jax.errors import SourceError
+
+__all__ = ["load_groundtruth", "load_occlusion"]
+
+_SEP = re.compile(r"[,;\s]+")
+
+
+def load_groundtruth(path: Path | str, one_based: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Read a box file: returns ``boxes [T, 4] float32`` (xywh, 0-based) and ``visible [T] bool``.
+
+    Blank lines at the end and lines starting with ``#`` are skipped; a blank
+    line in the middle is an error (it would shift every later frame).
+
+    Raises:
+      SourceError: naming the file and line when a line does not hold 4 numbers.
+    """
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError as e:
+        raise SourceError(f"{path}: cannot read ground truth ({e.strerror or e})") from None
+    while lines and not lines[-1].strip():
+        lines.pop()
+    rows = []
+    for n, line in enumerate(lines, start=1):
+        text = line.strip()
+        if text.startswith("#"):
+            continue
+        fields = [f for f in _SEP.split(text) if f]
+        try:
+            if len(fields) != 4:
+                raise ValueError
+            rows.append([float(f) for f in fields])
+        except ValueError:
+            raise SourceError(
+                f"{path}:{n}: expected 4 numbers 'x,y,w,h', got {line.strip()!r}"
+            ) from None
+    boxes = np.asarray(rows, np.float32).reshape(-1, 4)
+    finite = np.all(np.isfinite(boxes), axis=1)
+    visible = finite & (np.nan_to_num(boxes[:, 2]) > 0) & (np.nan_to_num(boxes[:, 3]) > 0)
+    if one_based:
+        boxes[:, :2] -= 1.0
+    boxes[~visible] = 0.0
+    return boxes, visible
+
+
+def load_occlusion(path: Path | str) -> list[str]:
+    """Per-frame occlusion labels (``none`` / ``partial`` / ``full``), one word a line."""
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").split()
+    except OSError as e:
+        raise SourceError(f"{path}: cannot read occlusion labels ({e.strerror or e})") from None
+    return [w.strip().lower() for w in lines]

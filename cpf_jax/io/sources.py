@@ -1,0 +1,57 @@
+"""``open_source``: one entry point from a command-line string to a frame source."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from cpf_jax.errors import SourceError
+from cpf_jax.io.base import FrameSource, LiveSource
+from cpf_jax.io.cameras import KinectV2Source, RealSenseSource
+from cpf_jax.io.files import VIDEO_SUFFIXES, NpzSource, VideoSource
+from cpf_jax.io.folders import open_folder
+from cpf_jax.io.synthetic import open_synthetic
+
+__all__ = ["open_source", "CAMERA_NAMES"]
+
+CAMERA_NAMES = ("realsense", "kinect2", "kinect")
+
+
+def open_source(spec: str | Path, kind: str | None = None) -> FrameSource | LiveSource:
+    """Open frames from a path, a camera name or a synthetic scenario name.
+
+    * a folder: its layout is detected from its content (``tum``, ``princeton``,
+      ``rgbd``, ``otb``; see :mod:`cpf_jax.io.folders`), or forced with ``kind``;
+    * a ``.npz`` file, a video file, or a RealSense ``.bag`` recording;
+    * ``realsense[:serial]`` or ``kinect2[:serial]``: a live camera;
+    * any other name that is not an existing path: a synthetic scenario from
+      ``cpf_jax.synthetic`` (an existing path with the same name wins).
+
+    Raises:
+      SourceError: one line naming what was asked for and what is wrong
+      (:class:`~cpf_jax.errors.CameraUnavailable` for cameras).
+    """
+    text = str(spec)
+    camera, _, serial = text.partition(":")
+    if camera.lower() in CAMERA_NAMES and not Path(text).exists():
+        if camera.lower() == "realsense":
+            return RealSenseSource(serial or None)
+        return KinectV2Source(serial or None)
+    path = Path(text).expanduser()
+    if path.is_dir():
+        return open_folder(path, kind)
+    if path.is_file():
+        suffix = path.suffix.lower()
+        if suffix == ".npz":
+            return NpzSource(path)
+        if suffix == ".bag":
+            return RealSenseSource(bag=path)
+        if suffix in VIDEO_SUFFIXES:
+            return VideoSource(path)
+        raise SourceError(
+            f"{path}: unsupported file type {suffix or '(none)'} "
+            f"(expected a folder, .npz, .bag or a video: {', '.join(VIDEO_SUFFIXES)})"
+        )
+    looks_like_path = "/" in text or "\\" in text or path.suffix != "" or text.startswith(".")
+    if looks_like_path or not text:
+        raise SourceError(f"{text}: no such file or directory")
+    return open_synthetic(text)
