@@ -1,0 +1,282 @@
+"""Logging a tracking run to Rerun 0.41 (an ``.rrd`` file headless, or a live viewer).
+
+Entity layout (every 2D entity lives in the colour camera's image space, so
+boxes and points are drawn over the image in one 2D view, and the depth
+image is back-projected in the 3D view when intrinsics are known):
+
+========================================  ==============================================
+``world``                                 ``ViewCoordinates.RDF`` (static): camera frame
+``world/camera``                          ``Pinhole`` (static, when intrinsics are known)
+``world/camera/image``                    colour ``Image`` (RGB)
+``world/camera/depth``                    ``DepthImage`` (uint16 mm, ``meter=1000``)
+``world/camera/<path>``                   boxes (``tracker/box``, ``gt/box``), particles
+                                          (``tracker/particles``), 2D body points
+``world/<path>``                          3D points (``body/points3d``, ``surface``),
+                                          metres in the camera frame (input in mm)
+``series/<name>``                         ``Scalars`` time series (ESS, timings)
+========================================  ==============================================
+
+Every call takes the frame index ``i`` and logs it on the ``frame``
+sequence timeline. Log times are disabled (``set_log_time_enabled(False)``)
+so recordings read back with ``rerun.chunk.RrdReader`` without pandas.
+Nothing numeric happens here: arrays in, Rerun calls out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+
+from cpf_jax.types import Frame, Intrinsics
+
+__all__ = ["RerunLogger", "weight_colours", "IMAGE_SPACE"]
+
+IMAGE_SPACE = "world/camera"
+TIMELINE = "frame"
+
+# A short perceptual colour ramp (viridis key colours) for particle weights.
+_RAMP = np.array(
+    [[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float64
+)
+
+
+def weight_colours(weights: np.ndarray, log: bool = False) -> np.ndarray:
+    """``[N]`` weights (or log-weights) -> ``[N, 3] uint8`` colours, dark = low, yellow = high.
+
+    Weights are scaled by their maximum; non-finite or all-zero weights give the low colour.
+    """
+    w = np.asarray(weights, np.float64).ravel()
+    if log:
+        finite = np.isfinite(w)
+        top = w[finite].max() if finite.any() else 0.0
+        w = np.where(finite, np.exp(w - top), 0.0)
+    w = np.where(np.isfinite(w), np.maximum(w, 0.0), 0.0)
+    top = w.max() if w.size else 0.0
+    t = w / top if top > 0 else np.zeros_like(w)
+    pos = t * (len(_RAMP) - 1)
+    lo = np.clip(np.floor(pos).astype(int), 0, len(_RAMP) - 2)
+    frac = (pos - lo)[:, None]
+    rgb = _RAMP[lo] * (1 - frac) + _RAMP[lo + 1] * frac
+    return np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+
+
+def _np(x: Any) -> np.ndarray:
+    return np.asarray(x)
+
+
+class RerunLogger:
+    """Log frames, boxes, particles, points and scalars of a run to Rerun.
+
+    Args:
+      rrd: write the recording to this ``.rrd`` file (headless).
+      spawn: start a Rerun viewer and stream to it (needs a display).
+      connect: stream to a running viewer at this gRPC URL
+        (e.g. ``rerun+http://127.0.0.1:9876/proxy``).
+      application_id: Rerun application id.
+      recording_id: optional id, e.g. to merge runs in one viewer.
+
+    Any combination of the three sinks works; at least one is required.
+    Call :meth:`close` (or use ``with``) so the ``.rrd`` file is finished.
+    """
+
+    def __init__(
+        self,
+        rrd: Path | str | None = None,
+        *,
+        spawn: bool = False,
+        connect: str | None = None,
+        application_id: str = "cpf_jax",
+        recording_id: str | None = None,
+    ) -> None:
+        if rrd is None and not spawn and connect is None:
+            raise ValueError("RerunLogger needs an .rrd path, spawn=True or a connect URL")
+        self.rrd = None if rrd is None else Path(rrd)
+        self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
+        self.rec.set_log_time_enabled(False)
+        if spawn:
+            self.rec.spawn(connect=False)
+        sinks: list[Any] = []
+        if self.rrd is not None:
+            self.rrd.parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(self.rrd)))
+        if spawn or connect is not None:
+            sinks.append(rr.GrpcSink(connect))
+        self.rec.set_sinks(*sinks)
+        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        self._pinhole: tuple[Intrinsics, int, int] | None = None
+        self._closed = False
+
+    # -- helpers -------------------------------------------------------------
+    def _at(self, i: int) -> None:
+        self.rec.set_time(TIMELINE, sequence=int(i))
+
+    @staticmethod
+    def _image_path(path: str) -> str:
+        return f"{IMAGE_SPACE}/{path.strip('/')}"
+
+    # -- frames ----------------------------------------------------------------
+    def log_pinhole(self, intrinsics: Intrinsics, width: int, height: int) -> None:
+        """Log the colour camera's pinhole model (static; again only if it changes)."""
+        key = (Intrinsics(*map(float, intrinsics)), int(width), int(height))
+        if key == self._pinhole:
+            return
+        self._pinhole = key
+        k = key[0]
+        self.rec.log(
+            IMAGE_SPACE,
+            rr.Pinhole(
+                focal_length=[k.fx, k.fy],
+                principal_point=[k.cx, k.cy],
+                width=key[1],
+                height=key[2],
+                camera_xyz=rr.ViewCoordinates.RDF,
+            ),
+            static=True,
+        )
+
+    def log_frame(
+        self,
+        i: int,
+        frame: Frame,
+        intrinsics: Intrinsics | None = None,
+        *,
+        depth: bool | None = None,
+    ) -> None:
+        """Log the colour image and depth image of frame ``i`` (and the pinhole, once).
+
+        ``depth=None`` logs the depth image unless it is all zeros (colour-only sources).
+        """
+        colour = _np(frame.colour)
+        h, w = colour.shape[:2]
+        if intrinsics is not None:
+            self.log_pinhole(intrinsics, w, h)
+        self._at(i)
+        self.rec.log(f"{IMAGE_SPACE}/image", rr.Image(colour, color_model="RGB"))
+        d = _np(frame.depth)
+        if depth or (depth is None and d.any()):
+            self.rec.log(f"{IMAGE_SPACE}/depth", rr.DepthImage(d.astype(np.uint16), meter=1000.0))
+
+    # -- boxes -------------------------------------------------------------------
+    def log_box(
+        self,
+        i: int,
+        box_xywh: Any,
+        path: str = "tracker/box",
+        label: str | None = None,
+        colour: Sequence[int] = (0, 200, 0),
+    ) -> None:
+        """Log one or more ``[..., 4]`` xywh boxes (top-left, pixels) at ``world/camera/<path>``.
+
+        Non-finite or empty boxes (a lost tracker, an invisible target) clear the entity.
+        """
+        boxes = _np(box_xywh).astype(np.float32).reshape(-1, 4)
+        ok = np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
+        self._at(i)
+        entity = self._image_path(path)
+        if not ok.any():
+            self.rec.log(entity, rr.Clear(recursive=False))
+            return
+        boxes = boxes[ok]
+        labels = None if label is None else [label] * len(boxes)
+        self.rec.log(
+            entity,
+            rr.Boxes2D(mins=boxes[:, :2], sizes=boxes[:, 2:], labels=labels, colors=[colour]),
+        )
+
+    def log_gt_box(self, i: int, box_xywh: Any, label: str | None = "GT") -> None:
+        """Log the ground-truth box at ``world/camera/gt/box`` (red)."""
+        self.log_box(i, box_xywh, path="gt/box", label=label, colour=(220, 40, 40))
+
+    # -- particles and points ----------------------------------------------------
+    def log_particles(
+        self,
+        i: int,
+        boxes_or_centres: Any,
+        weights: Any,
+        path: str = "tracker/particles",
+        *,
+        log_weights: bool = False,
+        show_boxes: bool = False,
+        radius: float = 2.0,
+    ) -> None:
+        """Log particles as points coloured by weight (``[N, 4]`` xywh boxes or ``[N, 2]`` points).
+
+        Box particles are drawn at their centres; ``show_boxes`` also draws the
+        boxes at ``<path>/boxes``. ``log_weights`` says the weights are logs.
+        """
+        p = _np(boxes_or_centres).astype(np.float32)
+        if p.ndim != 2 or p.shape[1] not in (2, 4):
+            raise ValueError(f"particles must be [N, 2] points or [N, 4] boxes, got {p.shape}")
+        colours = weight_colours(_np(weights), log=log_weights)
+        if len(colours) != len(p):
+            raise ValueError(f"{len(p)} particles but {len(colours)} weights")
+        centres = p if p.shape[1] == 2 else p[:, :2] + p[:, 2:] / 2
+        self._at(i)
+        entity = self._image_path(path)
+        self.rec.log(entity, rr.Points2D(centres, colors=colours, radii=radius))
+        if show_boxes and p.shape[1] == 4:
+            self.rec.log(
+                f"{entity}/boxes", rr.Boxes2D(mins=p[:, :2], sizes=p[:, 2:], colors=colours)
+            )
+
+    def log_points2d(
+        self,
+        i: int,
+        points: Any,
+        path: str = "body/points",
+        *,
+        labels: Sequence[str] | None = None,
+        colours: Any = None,
+        radius: float = 4.0,
+    ) -> None:
+        """Log ``[K, 2]`` image points (pixels) at ``world/camera/<path>``."""
+        pts = _np(points).astype(np.float32).reshape(-1, 2)
+        self._at(i)
+        self.rec.log(
+            self._image_path(path),
+            rr.Points2D(pts, labels=labels, colors=colours, radii=radius),
+        )
+
+    def log_points3d(
+        self,
+        i: int,
+        points_mm: Any,
+        path: str = "body/points3d",
+        *,
+        labels: Sequence[str] | None = None,
+        colours: Any = None,
+        radius: float = 0.01,
+    ) -> None:
+        """Log ``[K, 3]`` camera-frame points in mm (shown in metres) at ``world/<path>``."""
+        pts = _np(points_mm).astype(np.float32).reshape(-1, 3) / 1000.0
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        self._at(i)
+        self.rec.log(
+            f"world/{path.strip('/')}",
+            rr.Points3D(pts, labels=labels, colors=colours, radii=radius),
+        )
+
+    # -- scalars -----------------------------------------------------------------
+    def log_scalar(self, i: int, name: str, value: float) -> None:
+        """Log one value of the time series ``series/<name>`` (ESS, ms per step, ...)."""
+        self._at(i)
+        self.rec.log(f"series/{name.strip('/')}", rr.Scalars(float(value)))
+
+    # -- lifetime -------------------------------------------------------------------
+    def close(self) -> None:
+        """Flush and close the sinks; the ``.rrd`` file is complete after this."""
+        if self._closed:
+            return
+        self._closed = True
+        self.rec.flush()
+        self.rec.disconnect()
+
+    def __enter__(self) -> RerunLogger:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,124 @@
+"""Tests for cpf_jax.viz: write a small .rrd and read it back with rerun.chunk.RrdReader."""
+
+from __future__ import annotations
+
+import warnings
+from collections import defaultdict
+
+import numpy as np
+import pytest
+from rerun.chunk import RrdReader
+
+from cpf_jax.types import Frame, Intrinsics
+from cpf_jax.viz import RerunLogger, weight_colours
+
+T = 4
+
+
+def read_rrd(path):
+    """``{entity_path: {"frames": [...], "static": bool, "columns": set, "rows": [dict]}}``."""
+    out = defaultdict(lambda: {"frames": [], "static": False, "columns": set(), "rows": []})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a missing footer warns: the file was not finished
+        reader = RrdReader(path)
+        for ch in reader.stream():
+            data = ch.to_record_batch().to_pydict()
+            e = out[ch.entity_path]
+            e["static"] |= ch.is_static
+            e["columns"] |= set(data)
+            e["frames"] += data.get("frame", [])
+            n = len(next(iter(data.values())))
+            e["rows"] += [{k: v[r] for k, v in data.items()} for r in range(n)]
+    return out
+
+
+def frame(i: int, depth: bool = True) -> Frame:
+    colour = np.zeros((6, 8, 3), np.uint8)
+    colour[..., 0] = 10 * i
+    d = np.full((6, 8), 1000 + i, np.uint16) if depth else np.zeros((6, 8), np.uint16)
+    return Frame(colour, d)
+
+
+def test_recording_round_trip(tmp_path):
+    path = tmp_path / "run.rrd"
+    k = Intrinsics(500.0, 501.0, 3.5, 2.5)
+    rng = np.random.default_rng(0)
+    with RerunLogger(path) as log:
+        for i in range(T):
+            log.log_frame(i, frame(i), k)
+            log.log_box(i, [1 + i, 2, 3, 4], label="cpf")
+            log.log_gt_box(i, [1, 2, 3, 4] if i < T - 1 else [0, 0, 0, 0])
+            log.log_particles(i, rng.uniform(0, 8, (10, 4)), rng.random(10), show_boxes=True)
+            log.log_points2d(i, [[1, 1], [2, 3]], labels=["head", "hand"])
+            log.log_points3d(i, [[0, 0, 1500], [np.nan, 0, 0]])
+            log.log_scalar(i, "ess", 5.0 + i)
+            log.log_scalar(i, "timing/step_ms", 3.0)
+    rrd = read_rrd(path)
+    per_frame = [
+        "/world/camera/image",
+        "/world/camera/depth",
+        "/world/camera/tracker/box",
+        "/world/camera/gt/box",
+        "/world/camera/tracker/particles",
+        "/world/camera/tracker/particles/boxes",
+        "/world/camera/body/points",
+        "/world/body/points3d",
+        "/series/ess",
+        "/series/timing/step_ms",
+    ]
+    for entity in per_frame:
+        assert sorted(rrd[entity]["frames"]) == list(range(T)), entity
+    assert (
+        rrd["/world/camera"]["static"]
+        and "Pinhole:image_from_camera" in rrd["/world/camera"]["columns"]
+    )
+    assert rrd["/world"]["static"]
+    assert "DepthImage:meter" in rrd["/world/camera/depth"]["columns"]
+    assert "Image:buffer" in rrd["/world/camera/image"]["columns"]
+    assert "Boxes2D:labels" in rrd["/world/camera/tracker/box"]["columns"]
+    ess = sorted((r["frame"], r["Scalars:scalars"]) for r in rrd["/series/ess"]["rows"])
+    assert [v for _, v in ess] == [[5.0], [6.0], [7.0], [8.0]]
+    # last GT box is "not visible": the entity is cleared, not given a zero box
+    gt_rows = sorted(rrd["/world/camera/gt/box"]["rows"], key=lambda r: r["frame"])
+    assert gt_rows[-1].get("Boxes2D:half_sizes") is None
+    assert gt_rows[-1]["Clear:is_recursive"] == [False]
+    pts3d = [r for r in rrd["/world/body/points3d"]["rows"] if r["frame"] == 0][0]
+    np.testing.assert_allclose(
+        pts3d["Points3D:positions"], [[0.0, 0.0, 1.5]]
+    )  # mm -> m, NaN dropped
+    particles = rrd["/world/camera/tracker/particles"]["rows"][0]
+    assert len(particles["Points2D:positions"]) == 10 and len(particles["Points2D:colors"]) == 10
+
+
+def test_colour_only_frames_skip_depth_and_pinhole(tmp_path):
+    path = tmp_path / "c.rrd"
+    log = RerunLogger(path)
+    for i in range(2):
+        log.log_frame(i, frame(i, depth=False))
+    log.close()
+    log.close()  # idempotent
+    rrd = read_rrd(path)
+    assert sorted(rrd["/world/camera/image"]["frames"]) == [0, 1]
+    assert "/world/camera/depth" not in rrd
+    assert "/world/camera" not in rrd
+
+
+def test_weight_colours():
+    c = weight_colours(np.array([0.0, 0.5, 1.0, np.nan]))
+    assert c.dtype == np.uint8 and c.shape == (4, 3)
+    assert tuple(c[0]) == (68, 1, 84) and tuple(c[2]) == (253, 231, 37)
+    assert tuple(c[3]) == tuple(c[0])
+    np.testing.assert_array_equal(
+        weight_colours(np.log([0.1, 1.0]), log=True), weight_colours([0.1, 1.0])
+    )
+    assert (weight_colours(np.zeros(3)) == c[0]).all()  # all-zero weights: no NaN
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="rrd path"):
+        RerunLogger()
+    with RerunLogger(tmp_path / "x.rrd") as log:
+        with pytest.raises(ValueError, match=r"\[N, 2\]"):
+            log.log_particles(0, np.zeros((3, 3)), np.ones(3))
+        with pytest.raises(ValueError, match="3 particles but 2 weights"):
+            log.log_particles(0, np.zeros((3, 2)), np.ones(2))
