@@ -314,6 +314,8 @@ def test_synthetic_adapter():
     assert src.intrinsics == Intrinsics(365.0, 365.0, 3.5, 2.5)
     assert src.sequence.points3d.shape == (3, 5, 3)
     assert src.load_all().colour.shape == (3, 6, 8, 3)
+    floats = fake_scenario()._replace(colour=np.full((3, 6, 8, 3), 0.5, np.float32))
+    assert cio.SyntheticSource(floats)[0].colour[0, 0, 0] == 128
 
 
 def test_open_source_dispatches_names_to_synthetic(monkeypatch):

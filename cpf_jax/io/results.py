@@ -32,7 +32,7 @@ def _cell(value: Any) -> str:
     if value is None:
         return ""
     v = float(value)
-    return "nan" if math.isnan(v) else f"{v:.6g}"
+    return "nan" if math.isnan(v) else f"{v:.7g}"
 
 
 class ResultsWriter:

@@ -44,7 +44,11 @@ class SyntheticSource(FrameSource):
         if colour.ndim != 4 or colour.shape[-1] != 3:
             raise SourceError(f"{name}: colour must be [T, H, W, 3], got shape {colour.shape}")
         if colour.dtype != np.uint8:
-            colour = np.clip(np.rint(colour), 0, 255).astype(np.uint8)
+            # float colour in [0, 1] is scaled to 0..255; anything else is taken as 0..255.
+            scale = (
+                255.0 if colour.dtype.kind == "f" and colour.size and colour.max() <= 1.0 else 1.0
+            )
+            colour = np.clip(np.rint(colour * scale), 0, 255).astype(np.uint8)
         t = colour.shape[0]
         if depth is None:
             depth = np.zeros(colour.shape[:3], np.uint16)
