@@ -1,0 +1,109 @@
+"""Colour conversion: RGB -> HSV and hue-saturation bin indices.
+
+Conventions:
+
+* Input images are ``[..., 3] uint8`` in **RGB** order (``cpf_jax.types.Frame``).
+* ``rgb_to_hsv_u8`` follows **OpenCV's uint8 convention** exactly
+  (``cv2.cvtColor(img, cv2.COLOR_RGB2HSV)`` on ``uint8``): ``H`` in ``0..179``
+  (degrees / 2), ``S`` and ``V`` in ``0..255``. It reproduces OpenCV's
+  fixed-point arithmetic (``RGB2HSV_b``: 12-bit reciprocal tables rounded to
+  nearest, results rounded half-up), so it is bit-exact on every one of the
+  256^3 inputs, not merely close.
+* ``hs_bin_index`` gives the flat bin ``h_bin * s_bins + s_bin`` of the 2-D
+  histogram ``cv2.calcHist([hsv], [0, 1], None, [h_bins, s_bins], [0, 180, 0, 256])``
+  (row-major, hue is the slow axis, as in the ``[h_bins, s_bins]`` array OpenCV
+  returns). The uniform bin of value ``j`` in range ``[lo, hi)`` is
+  ``floor(j * (bins / (hi - lo)))`` evaluated in float64 like OpenCV's
+  ``calcHistLookupTables_8u``; this is ``floor(H * h_bins / 180)`` and
+  ``floor(S * s_bins / 256)`` up to float64 rounding, which the look-up tables
+  built here reproduce exactly (e.g. for ``h_bins = 26`` OpenCV puts ``H = 90``
+  in bin 12, not 13, because ``90 * (26 / 180)`` is ``12.999...`` in float64).
+* ``rgb_to_hsv_float`` is the smooth path (dm-pix): ``float32`` H, S, V in
+  ``[0, 1]`` with finite gradients; it is not used for histograms.
+"""
+
+from __future__ import annotations
+
+import dm_pix
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+__all__ = ["rgb_to_hsv_u8", "hs_bin_index", "hs_bin_luts", "rgb_to_hsv_float"]
+
+_HSV_SHIFT = 12
+_HALF = 1 << (_HSV_SHIFT - 1)
+
+
+def _opencv_tables() -> tuple[np.ndarray, np.ndarray]:
+    # OpenCV's RGB2HSV_b tables: saturate_cast<int> rounds to nearest; index 0 maps to 0.
+    i = np.arange(256, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        sdiv = np.where(i > 0, np.rint((255 << _HSV_SHIFT) / i), 0)
+        hdiv = np.where(i > 0, np.rint((180 << _HSV_SHIFT) / (6.0 * i)), 0)
+    return sdiv.astype(np.int32), hdiv.astype(np.int32)
+
+
+_SDIV, _HDIV180 = _opencv_tables()
+
+
+def rgb_to_hsv_u8(rgb: Array) -> Array:
+    """``[..., 3] uint8`` RGB -> ``[..., 3] uint8`` HSV, OpenCV convention (H 0..179, S, V 0..255).
+
+    Bit-exact with ``cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)``.
+    """
+    h, s, v = _hsv_u8_channels(rgb)
+    return jnp.stack([h, s, v], axis=-1).astype(jnp.uint8)
+
+
+def _hsv_u8_channels(rgb: Array) -> tuple[Array, Array, Array]:
+    """int32 H (0..179), S (0..255), V (0..255) planes of OpenCV's uint8 RGB -> HSV."""
+    rgb = jnp.asarray(rgb).astype(jnp.int32)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    v = jnp.maximum(jnp.maximum(r, g), b)
+    diff = v - jnp.minimum(jnp.minimum(r, g), b)
+    s = (diff * jnp.asarray(_SDIV)[v] + _HALF) >> _HSV_SHIFT
+    # Same branch order as OpenCV: red wins ties with green, green wins ties with blue.
+    h = jnp.where(v == r, g - b, jnp.where(v == g, b - r + 2 * diff, r - g + 4 * diff))
+    # Arithmetic right shift = floor division, as in C++ for negative h.
+    h = (h * jnp.asarray(_HDIV180)[diff] + _HALF) >> _HSV_SHIFT
+    h = jnp.where(h < 0, h + 180, h)
+    return h, s, v
+
+
+def hs_bin_luts(h_bins: int, s_bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's uniform-bin look-up tables for H in ``[0, 180)`` and S in ``[0, 256)``.
+
+    Returns ``(h_lut [180] int32, s_lut [256] int32)``; built with float64 like
+    ``calcHistLookupTables_8u`` (bin = ``floor(j * (bins / range))``, clamped).
+    """
+    h_lut = np.floor(np.arange(180, dtype=np.float64) * (h_bins / 180.0))
+    s_lut = np.floor(np.arange(256, dtype=np.float64) * (s_bins / 256.0))
+    h_lut = np.clip(h_lut, 0, h_bins - 1).astype(np.int32)
+    s_lut = np.clip(s_lut, 0, s_bins - 1).astype(np.int32)
+    return h_lut, s_lut
+
+
+def hs_bin_index(colour: Array, h_bins: int, s_bins: int) -> Array:
+    """``colour [..., 3] uint8`` RGB -> ``[...] int32`` flat H-S bin in ``[0, h_bins * s_bins)``.
+
+    ``bin = h_bin * s_bins + s_bin`` with OpenCV's uniform binning of
+    ``calcHist(..., [h_bins, s_bins], [0, 180, 0, 256])`` on the uint8 HSV image.
+    ``h_bins`` and ``s_bins`` are static.
+    """
+    h, s, _ = _hsv_u8_channels(colour)
+    h_lut, s_lut = hs_bin_luts(h_bins, s_bins)
+    # One fused table: bin of (H, S) = h_lut[H] * s_bins + s_lut[S]. H < 180 always.
+    return jnp.asarray(h_lut * s_bins)[h] + jnp.asarray(s_lut)[s]
+
+
+def rgb_to_hsv_float(colour: Array) -> Array:
+    """``[..., 3]`` RGB (uint8, or float in ``[0, 1]``) -> ``[..., 3] float32`` HSV in ``[0, 1]``.
+
+    Smooth path through ``dm_pix.rgb_to_hsv`` (hue = OpenCV float hue / 360 to
+    about 3e-5); gradients are finite. Not bit-compatible with the uint8 path.
+    """
+    colour = jnp.asarray(colour)
+    if colour.dtype == jnp.uint8:
+        colour = colour.astype(jnp.float32) / 255.0
+    return dm_pix.rgb_to_hsv(colour.astype(jnp.float32))
