@@ -1,0 +1,1167 @@
+"""Synthetic Kinect-v2-like RGB-D sequences of a walking person, with ground truth.
+
+``make_sequence(name, seed=0, n_frames=None, **overrides)`` renders one of
+:data:`SCENARIOS` (or a variation of it: any :class:`ScenarioSpec` field can be overridden)
+and returns a :class:`SyntheticSequence`. Pure NumPy (+ OpenCV for a blur and PNG I/O),
+deterministic per seed, about 100 frames/s on one CPU core.
+
+Camera and images
+-----------------
+* Colour is rendered from the depth camera's viewpoint, i.e. already registered to the
+  512 x 424 depth image: ``colour [T, 424, 512, 3] uint8`` RGB and ``depth [T, 424, 512]
+  uint16`` millimetres, 0 = missing. Intrinsics are :data:`cpf_jax.types.KINECT_V2_DEPTH`.
+* Camera coordinates are millimetres, X right, Y down, Z forward, and integer pixel
+  coordinates are pixel centres: ``u = fx X / Z + cx``, ``v = fy Y / Z + cy``; the depth at
+  pixel ``(row r, col c)`` back-projects to ``X = Z (c - cx) / fx, Y = Z (r - cy) / fy``
+  (thesis T 4.2). The camera stands ``camera_height_m`` above the floor, pitched down by
+  ``camera_pitch_deg``.
+
+Ground truth
+------------
+* ``boxes [T, 4] float32`` (x, y, w, h), top-left, in the convention of
+  ``cpf_jax.kernels.boxes`` (pixel ``c`` covers ``[c, c + 1)``): the **tight box of the
+  visible person pixels** (``mask``), i.e. ``(c_min, r_min, c_max - c_min + 1, r_max -
+  r_min + 1)``; ``xywh_to_rect`` of it gives exactly the mask's extent. ``(0, 0, 0, 0)``
+  when the person is not visible. Note the half-pixel offset to ``joints2d``: a joint at
+  ``(u, v)`` lies in pixel ``(round(v), round(u))``, whose box-convention centre is
+  ``(round(u) + 0.5, round(v) + 0.5)``.
+* ``visible [T] bool``: at least one person pixel.
+* ``mask [T, H, W] bool``: pixels whose nearest surface is the person (occluders excluded).
+* ``joints3d [T, J, 3] float32`` mm camera coordinates and ``joints2d [T, J, 2] float32``
+  ``(u, v)`` projections, names in ``joint_names``. Joints are anatomical centres (inside
+  the body): ``head`` is the centre of the head, ``head_top`` the top of the hair,
+  ``torso`` the trunk centroid (the thesis's body-centroid reference point),
+  ``left_hand`` / ``right_hand`` the hand centres, ``left_foot`` / ``right_foot`` the shoe
+  centres; ``left`` is the person's anatomical left.
+* ``meta``: the spec, the camera pose, ``up`` (world up in camera coordinates),
+  ``joint_visible [T, J]`` (the joint's own body part is the nearest surface at its
+  pixel), ``visible_fraction`` and ``occlusion`` (0 none, 1 partial, 2 full) per frame,
+  per-frame ``gain`` of the illumination, the walked path.
+
+Depth model
+-----------
+* Axial noise: Gaussian with the Kinect v2 model of Fankhauser et al., "Kinect v2 for
+  mobile robot navigation: evaluation and modeling", ICAR 2015:
+  ``sigma_z(z, theta) = 1.5 - 0.5 z + 0.3 z^2 + 0.1 z^1.5 theta^2 / (pi/2 - theta)^2`` mm
+  with ``z`` in metres and ``theta`` the angle between the ray and the surface normal
+  (coefficients as recalled from that paper, ~2.7 mm at 3 m, ~5 mm at 4.4 m facing the
+  camera); the structured-light Kinect v1 model of Nguyen et al. (3DIMPVT 2012) has the
+  same ``a + b (z - c)^2`` shape. ``depth_noise_scale`` multiplies it.
+* Missing pixels (0): beyond ``max_range_mm`` (4.5 m, the Kinect v2 SDK's reliable range)
+  or nearer than 0.5 m; at grazing incidence (> 83 deg); on the far (p=0.7) and near (p=0.3)
+  side of depth discontinuities between different surfaces, where a time-of-flight camera
+  produces flying pixels that the driver's edge filter removes (libfreenect2 does this);
+  and on surfaces with a weak infrared return, with probability ``sigmoid((A0 - A)/s)`` of
+  the return amplitude ``A = ir_reflectivity * cos(theta) / z^2`` (black hair and dark
+  shoes drop out partially at 3 m, skin and bright fabric never).
+* Colour: Lambert shading plus ambient from a fixed light, procedural textures (wood floor,
+  plaster walls, bookshelves, fabric), a light blur, Gaussian sensor noise
+  ``colour_noise`` (uint8 units) and optional global illumination change.
+
+Extending
+---------
+Every frame is a list of primitives (``cpf_jax._synthetic_render.Prim``) with an object id
+(0 background, 1 person, 2.. occluders) ray cast into one z-buffer with a primitive-id
+buffer, so adding objects means appending primitives: ``occluders`` (boxes moving on the
+floor) already use this, and ``shirt_change`` switches the shirt colour at a frame.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import dataclasses
+import json
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import cv2
+import numpy as np
+
+from cpf_jax import _synthetic_body as body
+from cpf_jax import _synthetic_render as rnd
+from cpf_jax.types import KINECT_V2_DEPTH, Frame, Intrinsics
+
+__all__ = [
+    "Clothing",
+    "Occluder",
+    "ScenarioSpec",
+    "SCENARIOS",
+    "SyntheticSequence",
+    "make_sequence",
+    "iter_frames",
+    "stacked_frames",
+    "to_folder",
+    "contact_sheet",
+    "kinect_v2_axial_sigma_mm",
+]
+
+RGB = tuple[int, int, int]
+HEIGHT, WIDTH = 424, 512
+
+
+@dataclass(frozen=True)
+class Clothing:
+    """Colours (sRGB 0-255) of the walking person."""
+
+    shirt: RGB = (170, 35, 45)
+    trousers: RGB = (45, 60, 95)
+    skin: RGB = (205, 150, 120)
+    hair: RGB = (40, 30, 25)
+    shoes: RGB = (35, 33, 35)
+    long_sleeves: bool = True
+
+
+@dataclass(frozen=True)
+class Occluder:
+    """A box standing on the floor that moves in a straight line (world metres, seconds).
+
+    ``start_xz`` / ``end_xz`` are floor positions of its centre (x right, z away from the
+    camera); it moves between them during ``[t0_s, t1_s]`` and rests outside that interval.
+    """
+
+    size_m: tuple[float, float, float] = (0.6, 1.9, 0.4)  # width (x), height, depth (z)
+    start_xz: tuple[float, float] = (-2.5, 2.0)
+    end_xz: tuple[float, float] = (2.5, 2.0)
+    t0_s: float = 0.0
+    t1_s: float = 5.0
+    colour: RGB = (90, 90, 95)
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """Everything that defines a scenario; every field can be overridden in
+    :func:`make_sequence`. Lengths in metres, speeds in m/s, angles in degrees.
+
+    ``path``: ``"pace"`` walks across the view in a stadium-shaped loop (two lanes
+    ``lane_gap_m`` apart around ``distance_m``, U-turns at the sides, as many crossings
+    as the sequence needs); ``"towards"`` / ``"away"`` walk between ``far_m`` and
+    ``near_m``; ``"turn"`` walks across at ``far_m - 0.4`` then turns 90 degrees towards
+    the camera (L-shaped). Single-pass paths clip the default ``n_frames`` so the person
+    stays in view; an explicit longer ``n_frames`` lets them walk on (and out of view).
+
+    Difficulty knobs: ``fps`` (frame spacing; motion per frame is ``speed / fps``),
+    ``clutter`` (number of furniture objects), ``clutter_match`` (fraction of them coloured
+    like the clothing), ``distractor_similarity`` (0 = unrelated hue .. 1 = identical
+    colour, used for matched clutter and the distractor panel), ``distractor`` (a large
+    shirt-coloured panel just behind the walking lane), ``colour_noise``, ``illumination``
+    (``"none"``, ``"drift"`` slow gain and colour-temperature drift, ``"switch"`` a light
+    goes off half-way) with ``illumination_strength``, ``distance_m``.
+    """
+
+    path: str = "pace"
+    speed_mps: float = 0.8
+    fps: float = 10.0
+    n_frames: int = 150
+    distance_m: float = 3.0
+    lane_gap_m: float = 0.6
+    near_m: float = 1.9
+    far_m: float = 4.2
+    height_m: float = 1.75
+    clothing: Clothing = field(default_factory=Clothing)
+    clutter: int = 8
+    clutter_match: float = 0.25
+    distractor_similarity: float = 0.8
+    distractor: bool = False
+    colour_noise: float = 3.0
+    colour_blur: float = 0.6
+    colour_holes: bool = False
+    illumination: str = "none"
+    illumination_strength: float = 0.35
+    camera_height_m: float = 1.1
+    camera_pitch_deg: float = 7.0
+    room_depth_m: float = 4.4
+    room_half_width_m: float = 3.2
+    depth_noise_scale: float = 1.0
+    max_range_mm: float = 4500.0
+    occluders: tuple[Occluder, ...] = ()
+    shirt_change: tuple[int, RGB] | None = None
+
+
+SCENARIOS: dict[str, ScenarioSpec] = {
+    "walk_across_slow": ScenarioSpec(speed_mps=0.4),
+    "walk_across_medium": ScenarioSpec(speed_mps=0.8),
+    "walk_across_fast": ScenarioSpec(speed_mps=1.2),
+    "walk_towards": ScenarioSpec(
+        path="towards",
+        room_depth_m=4.9,
+        clothing=Clothing(shirt=(45, 120, 75), trousers=(60, 55, 50)),
+    ),
+    "walk_away": ScenarioSpec(
+        path="away", room_depth_m=4.9, clothing=Clothing(shirt=(45, 120, 75), trousers=(60, 55, 50))
+    ),
+    "turn": ScenarioSpec(
+        path="turn",
+        room_depth_m=4.6,
+        clothing=Clothing(shirt=(215, 150, 40), trousers=(50, 50, 60)),
+    ),
+    "distractor_pass": ScenarioSpec(
+        distractor=True, clutter=10, clutter_match=0.4, distractor_similarity=0.9
+    ),
+    "light_switch": ScenarioSpec(illumination="switch"),
+}
+
+
+class SyntheticSequence(NamedTuple):
+    colour: np.ndarray  # [T, H, W, 3] uint8 RGB
+    depth: np.ndarray  # [T, H, W] uint16 mm, 0 = missing
+    boxes: np.ndarray  # [T, 4] float32 xywh, tight box of the visible person pixels
+    visible: np.ndarray  # [T] bool
+    joints3d: np.ndarray  # [T, J, 3] float32 mm, camera coordinates
+    joints2d: np.ndarray  # [T, J, 2] float32 (u, v) pixels
+    joint_names: tuple[str, ...]
+    mask: np.ndarray  # [T, H, W] bool person pixels
+    intrinsics: Intrinsics
+    fps: float
+    name: str
+    meta: dict[str, Any]
+
+
+def kinect_v2_axial_sigma_mm(z_m: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Axial depth noise std (mm) of Kinect v2 at depth ``z_m`` (m), incidence ``theta`` (rad)."""
+    z = np.asarray(z_m, np.float32)
+    th = np.minimum(np.asarray(theta, np.float32), np.float32(1.45))
+    return (
+        1.5 - 0.5 * z + 0.3 * z * z + 0.1 * z**1.5 * th * th / (np.float32(np.pi / 2) - th) ** 2
+    ).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Materials and textures.
+
+
+@dataclass(frozen=True)
+class _Material:
+    rgb: tuple[float, float, float]
+    ir: float  # near-infrared reflectivity (0..1) for the time-of-flight amplitude
+    texture: str = "plain"
+    scale: float = 0.01
+    strength: float = 0.05
+    palette: tuple = ()
+    emissive: bool = False
+
+
+def _lum(rgb) -> float:
+    return (0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]) / 255.0
+
+
+def _ir(rgb, base=0.25, gain=0.6) -> float:
+    return base + gain * _lum(rgb)
+
+
+def _similar_colour(rng: np.random.Generator, rgb, similarity: float) -> tuple:
+    """A colour whose hue/saturation/value differ from ``rgb`` by ``(1 - similarity)``-scaled
+    random amounts (similarity 1: the same colour; 0: up to 90 degrees of hue away)."""
+    h, s, v = colorsys.rgb_to_hsv(*(np.asarray(rgb, float) / 255.0))
+    d = 1.0 - float(np.clip(similarity, 0.0, 1.0))
+    h = (h + rng.choice([-1, 1]) * d * rng.uniform(0.6, 1.0) * 0.25) % 1.0
+    s = float(np.clip(s * (1 + d * rng.uniform(-0.5, 0.3)), 0, 1))
+    v = float(np.clip(v * (1 + d * rng.uniform(-0.4, 0.4) + rng.uniform(-0.05, 0.05)), 0.05, 1))
+    return tuple(255.0 * np.array(colorsys.hsv_to_rgb(h, s, v)))
+
+
+_FURNITURE_COLOURS = (
+    (150, 110, 70),
+    (110, 75, 45),
+    (200, 165, 120),
+    (225, 225, 220),
+    (180, 180, 185),
+    (95, 98, 102),
+    (40, 40, 44),
+    (55, 85, 150),
+    (70, 125, 80),
+    (160, 50, 45),
+    (205, 175, 70),
+    (120, 140, 160),
+    (190, 120, 60),
+)
+_BOOK_COLOURS = (
+    (160, 40, 40),
+    (40, 70, 140),
+    (40, 110, 60),
+    (200, 170, 60),
+    (220, 220, 210),
+    (30, 30, 35),
+    (150, 90, 40),
+    (110, 50, 110),
+    (60, 140, 150),
+    (200, 110, 40),
+    (90, 90, 90),
+    (180, 60, 90),
+)
+
+
+class _Tex(NamedTuple):
+    smooth: np.ndarray
+    rough: np.ndarray
+    hash: np.ndarray  # [4096] uniform(0, 1)
+
+
+def _make_tex(rng: np.random.Generator) -> _Tex:
+    return _Tex(
+        rnd.periodic_noise(rng, 256, 2.2),
+        rnd.periodic_noise(rng, 256, 0.8),
+        rng.uniform(size=4096).astype(np.float32),
+    )
+
+
+def _aniso(tile, u, v, su, sv):
+    size = tile.shape[0]
+    return tile[np.floor(v / sv).astype(np.int64) % size, np.floor(u / su).astype(np.int64) % size]
+
+
+def _albedo(mat: _Material, uv: np.ndarray, tex: _Tex) -> np.ndarray:
+    """``[n, 3] float32`` albedo (0-255 scale) of ``mat`` at surface coordinates ``uv [2, n]``."""
+    u = uv[0].astype(np.float64)
+    v = uv[1].astype(np.float64)
+    base = np.asarray(mat.rgb, np.float32)[None, :]
+    st, sc = mat.strength, mat.scale
+    hsh = tex.hash
+    if mat.texture == "fabric":
+        f = (
+            1
+            + st * _aniso(tex.rough, u, v, 0.0035, 0.0035)
+            + 0.7 * st * _aniso(tex.smooth, u, v, 0.04, 0.04)
+        )
+        return base * f[:, None]
+    if mat.texture == "hair":
+        f = 1 + st * _aniso(tex.rough, u, v, 0.0015, 0.02)
+        return base * f[:, None]
+    if mat.texture == "planks":
+        w = 0.14
+        idx = np.floor(u / w).astype(np.int64)
+        seg = np.floor((v + hsh[idx % 4096] * 2.0) / 1.3).astype(np.int64)
+        shade = 0.85 + 0.3 * hsh[(idx * 7 + seg * 131) % 4096]
+        grain = (
+            1
+            + st * _aniso(tex.rough, u, v, 0.0015, 0.05)
+            + 0.5 * st * _aniso(tex.smooth, u, v, 0.01, 0.2)
+        )
+        gap = (np.mod(u, w) < 0.004) | (np.mod(v + hsh[idx % 4096] * 2.0, 1.3) < 0.004)
+        f = np.where(gap, 0.55, shade * grain)
+        return base * f[:, None]
+    if mat.texture == "tiles":
+        fu, fv = np.mod(u, sc), np.mod(v, sc)
+        idx = (
+            np.floor(u / sc).astype(np.int64) * 31 + np.floor(v / sc).astype(np.int64) * 17
+        ) % 4096
+        f = (0.95 + 0.1 * hsh[idx]) * (1 + st * _aniso(tex.rough, u, v, 0.004, 0.004))
+        f = np.where((fu < 0.008) | (fv < 0.008), 0.75, f)
+        return base * f[:, None]
+    if mat.texture == "books":
+        pal = np.asarray(mat.palette, np.float32)
+        shelf_h = 0.38
+        sv = np.mod(v, shelf_h)
+        shelf = np.floor(v / shelf_h).astype(np.int64)
+        bu = u + hsh[(shelf * 13) % 4096]
+        bi = np.floor(bu / 0.035).astype(np.int64) + shelf * 1000
+        hb = hsh[bi % 4096]
+        col = pal[(hb * len(pal)).astype(np.int64) % len(pal)]
+        top = 0.2 + 0.12 * hsh[(bi * 7) % 4096]
+        out = np.where(((sv > 0.03) & (sv < 0.03 + top))[:, None], col, base * 0.35)
+        out = np.where((sv <= 0.03)[:, None], base, out)
+        return out * (1 + 0.5 * st * _aniso(tex.rough, u, v, 0.004, 0.004))[:, None]
+    if mat.texture == "stripes":
+        pal = np.asarray(mat.palette, np.float32)
+        col = pal[np.floor(v / sc).astype(np.int64) % len(pal)]
+        return col * (1 + st * _aniso(tex.rough, u, v, 0.004, 0.004))[:, None]
+    if mat.texture == "blotches":
+        pal = np.asarray(mat.palette, np.float32)
+        q = _aniso(tex.smooth, u, v, sc, sc)
+        k = np.clip(((q + 2.0) / 4.0 * len(pal)).astype(np.int64), 0, len(pal) - 1)
+        return pal[k] * (1 + st * _aniso(tex.rough, u, v, 0.004, 0.004))[:, None]
+    # plain / wall / skin
+    f = (
+        1
+        + st * _aniso(tex.rough, u, v, sc, sc)
+        + 0.5 * st * _aniso(tex.smooth, u, v, sc * 20, sc * 20)
+    )
+    return base * f[:, None]
+
+
+# ---------------------------------------------------------------------------------------------
+# Camera.
+
+
+class _Camera(NamedTuple):
+    R: np.ndarray  # [3, 3] world -> camera rotation (rows: right, down, forward)
+    C: np.ndarray  # [3] camera centre in world (m)
+
+    def to_cam(self, p):
+        return (np.asarray(p) - self.C) @ self.R.T
+
+    def dir_to_cam(self, d):
+        return np.asarray(d) @ self.R.T
+
+
+def _camera(height_m: float, pitch_deg: float) -> _Camera:
+    th = np.radians(pitch_deg)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, -np.cos(th), -np.sin(th)], [0.0, -np.sin(th), np.cos(th)]])
+    return _Camera(R, np.array([0.0, height_m, 0.0]))
+
+
+# ---------------------------------------------------------------------------------------------
+# Paths.
+
+_TAN_HALF_FOV = min(KINECT_V2_DEPTH.cx, WIDTH - 1 - KINECT_V2_DEPTH.cx) / KINECT_V2_DEPTH.fx
+
+
+def _plan_path(spec: ScenarioSpec, rng: np.random.Generator, duration_s: float):
+    """Waypoints (x, z), corner radius, start offset and the in-view walk length."""
+    v = spec.speed_mps
+    mirror = rng.choice([-1.0, 1.0])
+    if spec.path == "pace":
+        r = spec.lane_gap_m / 2
+        d = spec.distance_m + rng.uniform(-0.1, 0.1)
+        zf, zn = d + r, d - r
+        span = max(zn * _TAN_HALF_FOV - 0.6, 0.4)
+        loop = [(-span, zf), (span, zf), (span, zn), (-span, zn)]
+        need = v * duration_s + 4 * span
+        n_loops = int(np.ceil(need / (4 * span + 2 * np.pi * r))) + 1
+        wps = [loop[i % 4] for i in range(4 * n_loops + 1)]
+        wps = np.array(wps) * np.array([mirror, 1.0])
+        s0 = rng.uniform(0.0, 0.5 * span)
+        return wps, r, s0, np.inf
+    if spec.path in ("towards", "away"):
+        x0 = rng.uniform(-0.4, 0.4)
+        x1 = x0 + rng.uniform(-0.4, 0.4)
+        wps = np.array([(x0, spec.far_m), (x1, spec.near_m)])
+        if spec.path == "away":
+            wps = wps[::-1]
+        return wps, 0.0, 0.0, body.planned_length(wps, 0.0)
+    if spec.path == "turn":
+        z_across = spec.far_m - 0.4
+        xs = -(z_across * _TAN_HALF_FOV - 0.6)
+        xc = rng.uniform(0.1, 0.5)
+        wps = np.array([(xs, z_across), (xc, z_across), (xc, spec.near_m + 0.2)])
+        wps = wps * np.array([mirror, 1.0])
+        return wps, 0.5, 0.0, body.planned_length(wps, 0.5)
+    raise ValueError(f"unknown path {spec.path!r}; expected 'pace', 'towards', 'away' or 'turn'")
+
+
+# ---------------------------------------------------------------------------------------------
+# Static scene.
+
+
+class _Scene(NamedTuple):
+    prims: list
+    materials: list
+    floor_index: int
+
+
+def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep_out) -> _Scene:
+    """Room, furniture and posters. ``keep_out = (x0, x1, z0, z1, amin, amax)``: the
+    person's floor region and angular range (x/z), which furniture must neither enter nor
+    hide."""
+    mats: list[_Material] = []
+    prims: list[rnd.Prim] = []
+
+    def mat(m: _Material) -> int:
+        mats.append(m)
+        return len(mats) - 1
+
+    def add_box(centre, size, m):
+        prims.append(rnd.box(cam.to_cam(centre), cam.R, np.asarray(size) / 2, 0, m))
+
+    D, W2, CEIL = spec.room_depth_m, spec.room_half_width_m, 2.7
+    floor_rgb = _FURNITURE_COLOURS[rng.choice([0, 2])] if rng.uniform() < 0.6 else (150, 150, 145)
+    floor_tex = "planks" if floor_rgb != (150, 150, 145) else "tiles"
+    m_floor = mat(_Material(floor_rgb, _ir(floor_rgb), floor_tex, 0.45, 0.12))
+    add_box((0, -0.05, D / 2), (2 * W2 + 1, 0.1, D + 1), m_floor)
+    floor_index = len(prims) - 1
+    wall_rgb = tuple(
+        int(c) for c in rng.choice([(225, 222, 210), (205, 210, 200), (215, 205, 185)])
+    )
+    m_wall = mat(_Material(wall_rgb, _ir(wall_rgb), "wall", 0.006, 0.04))
+    add_box((0, CEIL / 2, D + 0.05), (2 * W2 + 1, CEIL + 0.2, 0.1), m_wall)
+    side_rgb = tuple(int(0.93 * c) for c in wall_rgb)
+    m_side = mat(_Material(side_rgb, _ir(side_rgb), "wall", 0.006, 0.04))
+    add_box((-W2 - 0.05, CEIL / 2, D / 2), (0.1, CEIL + 0.2, D + 1), m_side)
+    add_box((W2 + 0.05, CEIL / 2, D / 2), (0.1, CEIL + 0.2, D + 1), m_side)
+    m_ceil = mat(_Material((235, 235, 235), 0.7, "wall", 0.006, 0.03))
+    add_box((0, CEIL + 0.05, D / 2), (2 * W2 + 1, 0.1, D + 1), m_ceil)
+    m_lamp = mat(_Material((255, 252, 240), 0.7, "plain", 0.01, 0.0, emissive=True))
+    for lz in np.arange(1.5, D, 1.6):
+        add_box((0, CEIL - 0.02, lz), (1.2, 0.04, 0.3), m_lamp)
+    # Skirting board along the back wall.
+    m_skirt = mat(_Material((245, 245, 240), 0.7, "plain", 0.01, 0.02))
+    add_box((0, 0.05, D - 0.01), (2 * W2, 0.1, 0.02), m_skirt)
+
+    cl = spec.clothing
+    x0, x1, z0, z1, amin, amax = keep_out
+
+    def colour_for_clutter():
+        if rng.uniform() < spec.clutter_match:
+            target = cl.shirt if rng.uniform() < 0.7 else cl.trousers
+            return _similar_colour(rng, target, spec.distractor_similarity)
+        return _FURNITURE_COLOURS[rng.integers(len(_FURNITURE_COLOURS))]
+
+    def allowed(cx, cz, w, d):
+        xa, xb, za, zb = cx - w / 2, cx + w / 2, cz - d / 2, cz + d / 2
+        if xa < -W2 or xb > W2 or zb > D or za < 0.8:
+            return False
+        if xb > x0 and xa < x1 and zb > z0 and za < z1:
+            return False  # on the walking area
+        corners_a = [xa / za, xb / za, xa / zb, xb / zb]
+        a_lo, a_hi = min(corners_a), max(corners_a)
+        if a_hi < -_TAN_HALF_FOV or a_lo > _TAN_HALF_FOV:
+            return False  # out of view: pointless
+        if za < z1 + 0.1 and a_hi > amin and a_lo < amax:
+            return False  # would hide the person
+        return True
+
+    # Posters on the back wall (no depth of their own: 1 cm thick).
+    palette_pool = [tuple(c) for c in _BOOK_COLOURS]
+    for _ in range(1 + spec.clutter // 3):
+        w, h = rng.uniform(0.4, 1.0), rng.uniform(0.5, 1.0)
+        cx = rng.uniform(-W2 + w, W2 - w)
+        pal = tuple(palette_pool[i] for i in rng.choice(len(palette_pool), 4, replace=False))
+        if rng.uniform() < spec.clutter_match:
+            pal = (_similar_colour(rng, cl.shirt, spec.distractor_similarity),) + pal[1:]
+        kind = "stripes" if rng.uniform() < 0.4 else "blotches"
+        m = mat(_Material(pal[0], 0.5, kind, rng.uniform(0.04, 0.12), 0.05, pal))
+        add_box((cx, rng.uniform(1.1, 1.8), D - 0.006), (w, h, 0.012), m)
+
+    # Furniture on the floor.
+    for _ in range(spec.clutter):
+        kind = rng.choice(
+            ["shelf", "cabinet", "table", "crate", "chair", "wall_shelf"],
+            p=[0.2, 0.2, 0.15, 0.15, 0.1, 0.2],
+        )
+        for _attempt in range(60):
+            if kind == "shelf":
+                w, h, d = rng.uniform(0.6, 1.2), rng.uniform(1.2, 2.0), rng.uniform(0.3, 0.4)
+            elif kind == "cabinet":
+                w, h, d = rng.uniform(0.5, 1.2), rng.uniform(0.7, 1.3), rng.uniform(0.4, 0.6)
+            elif kind == "table":
+                w, h, d = rng.uniform(0.8, 1.6), rng.uniform(0.7, 0.78), rng.uniform(0.6, 0.9)
+            elif kind == "wall_shelf":
+                w, h, d = rng.uniform(0.6, 1.4), rng.uniform(0.35, 0.8), 0.25
+            elif kind == "crate":
+                w, h, d = rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.6)
+            else:
+                w, h, d = 0.45, 0.9, 0.45
+            against_wall = kind == "wall_shelf" or (
+                kind in ("shelf", "cabinet") and rng.uniform() < 0.7
+            )
+            cz = D - d / 2 - 0.01 if against_wall else rng.uniform(1.0, D - d / 2)
+            cx = rng.uniform(-W2 + w / 2, W2 - w / 2)
+            if allowed(cx, cz, w, d):
+                break
+        else:
+            continue
+        rgb = colour_for_clutter()
+        if kind in ("shelf", "wall_shelf"):
+            m_frame = mat(_Material(rgb, _ir(rgb), "books", 0.01, 0.06, tuple(_BOOK_COLOURS)))
+            y0 = rng.uniform(1.1, 2.5 - h) if kind == "wall_shelf" else 0.0
+            add_box((cx, y0 + h / 2, cz), (w, h, d), m_frame)
+        elif kind == "cabinet":
+            m = mat(_Material(rgb, _ir(rgb), "plain", 0.005, 0.05))
+            add_box((cx, h / 2, cz), (w, h, d), m)
+        elif kind == "crate":
+            m = mat(_Material(rgb, _ir(rgb), "plain", 0.004, 0.08))
+            add_box((cx, h / 2, cz), (w, h, d), m)
+        else:
+            top = 0.04
+            m = mat(_Material(rgb, _ir(rgb), "plain", 0.004, 0.06))
+            leg_rgb = (60, 60, 62) if rng.uniform() < 0.5 else rgb
+            m_leg = mat(_Material(leg_rgb, _ir(leg_rgb), "plain", 0.004, 0.03))
+            seat_h = h if kind == "table" else 0.46
+            add_box((cx, seat_h - top / 2, cz), (w, top, d), m)
+            for sx in (-1, 1):
+                for sz in (-1, 1):
+                    add_box(
+                        (cx + sx * (w / 2 - 0.04), (seat_h - top) / 2, cz + sz * (d / 2 - 0.04)),
+                        (0.04, seat_h - top, 0.04),
+                        m_leg,
+                    )
+            if kind == "chair":
+                add_box((cx, seat_h + 0.22, cz + d / 2 - 0.02), (w, 0.44, 0.03), m)
+
+    if spec.distractor:
+        # A large shirt-coloured panel standing just behind the far lane, centred on the walk.
+        rgb = _similar_colour(rng, cl.shirt, spec.distractor_similarity)
+        m = mat(_Material(rgb, _ir(rgb), "plain", 0.004, 0.06))
+        zc = min(z1 + 0.1, D - 0.05)
+        add_box((0.5 * (x0 + x1) + rng.uniform(-0.2, 0.2), 0.85, zc), (1.2, 1.7, 0.04), m)
+    return _Scene(prims, mats, floor_index)
+
+
+# ---------------------------------------------------------------------------------------------
+# Person.
+
+
+def _person_materials(cl: Clothing, shirt: RGB) -> list[_Material]:
+    """Materials of the body parts, indexed like ``body.PART_NAMES``."""
+    shirt_m = _Material(tuple(shirt), _ir(shirt), "fabric", 0.004, 0.07)
+    trousers_m = _Material(cl.trousers, _ir(cl.trousers), "fabric", 0.004, 0.08)
+    skin_m = _Material(cl.skin, 0.55, "plain", 0.003, 0.03)
+    hair_m = _Material(cl.hair, 0.03 + 0.5 * _lum(cl.hair), "hair", 0.002, 0.12)
+    shoes_m = _Material(cl.shoes, 0.05 + 0.6 * _lum(cl.shoes), "plain", 0.004, 0.05)
+    slot = {
+        "face": skin_m,
+        "hair": hair_m,
+        "neck": skin_m,
+        "chest": shirt_m,
+        "shoulders": shirt_m,
+        "abdomen": shirt_m,
+        "hips": trousers_m,
+        "left_upper_arm": shirt_m,
+        "right_upper_arm": shirt_m,
+        "left_forearm": shirt_m if cl.long_sleeves else skin_m,
+        "right_forearm": shirt_m if cl.long_sleeves else skin_m,
+        "left_hand": skin_m,
+        "right_hand": skin_m,
+        "left_thigh": trousers_m,
+        "right_thigh": trousers_m,
+        "left_shin": trousers_m,
+        "right_shin": trousers_m,
+        "left_foot": shoes_m,
+        "right_foot": shoes_m,
+    }
+    return [slot[n] for n in body.PART_NAMES]
+
+
+def _person_prims(
+    pose: body.Pose, height: float, cam: _Camera, mat_offset: int, object_id: int
+) -> list[rnd.Prim]:
+    prims = []
+    for i, part in enumerate(body.body_parts(pose, height)):
+        if part[0] == "capsule":
+            _, a, b, r, ref = part
+            prims.append(
+                rnd.capsule(
+                    cam.to_cam(a),
+                    cam.to_cam(b),
+                    r,
+                    cam.dir_to_cam(ref),
+                    object_id,
+                    mat_offset + i,
+                    i,
+                )
+            )
+        else:
+            _, c, axes, radii = part
+            prims.append(
+                rnd.ellipsoid(cam.to_cam(c), cam.R @ axes, radii, object_id, mat_offset + i, i)
+            )
+    return prims
+
+
+# ---------------------------------------------------------------------------------------------
+# Depth effects.
+
+_P_EDGE_FAR, _P_EDGE_NEAR = 0.7, 0.3
+_AMP0, _AMP_S = 0.0045, 0.0012
+_COS_GRAZING = np.cos(np.radians(83.0))
+
+
+def _edge_flags(z: np.ndarray, key: np.ndarray):
+    """Far / near side of depth discontinuities between different surfaces (4-neighbours)."""
+    zp = np.pad(z, 1, mode="edge")
+    kp = np.pad(key, 1, mode="edge")
+    thr = np.maximum(0.05, 0.03 * np.where(np.isfinite(z), z, 10.0))
+    far = np.zeros(z.shape, bool)
+    near = np.zeros(z.shape, bool)
+    h, w = z.shape
+    for dr, dc in ((0, 1), (2, 1), (1, 0), (1, 2)):
+        zn = zp[dr : dr + h, dc : dc + w]
+        diff = kp[dr : dr + h, dc : dc + w] != key
+        with np.errstate(invalid="ignore"):
+            far |= diff & (z - zn > thr)
+            near |= diff & (zn - z > thr)
+    return far, near
+
+
+def _edge_prob(far: np.ndarray, near: np.ndarray) -> np.ndarray:
+    return np.where(
+        far, np.float32(_P_EDGE_FAR), np.where(near, np.float32(_P_EDGE_NEAR), 0)
+    ).astype(np.float32)
+
+
+def _static_missing(zmm: np.ndarray, cos: np.ndarray, max_range_mm: float) -> np.ndarray:
+    """Deterministic dropouts: no surface, out of range, grazing incidence."""
+    return (zmm > max_range_mm) | (zmm < 500.0) | (cos < _COS_GRAZING)
+
+
+def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
+    return cv2.GaussianBlur(img, (0, 0), sigma) if sigma > 0 else img.copy()
+
+
+def _dynamic_window(prims, root_xz, cam: _Camera, intr, H: int, W: int):
+    """Pixel window ``(r0, r1, c0, c1)`` that holds every dynamic primitive and the
+    person's floor shadow, with a 4 px margin (so that no dynamic pixel touches its
+    border), ``None`` when nothing is in view; and the floor-shadow rect (unclipped)."""
+    rects = [rnd.screen_rect(p, *intr) for p in prims]
+    floor = np.array(
+        [(root_xz[0] + dx, 0.0, root_xz[1] + dz) for dx in (-0.8, 0.8) for dz in (-0.8, 0.8)]
+    )
+    fc = cam.to_cam(floor)
+    shadow = None
+    if fc[:, 2].min() > 0.05:
+        u = intr.fx * fc[:, 0] / fc[:, 2] + intr.cx
+        v = intr.fy * fc[:, 1] / fc[:, 2] + intr.cy
+        shadow = (
+            int(np.floor(v.min())),
+            int(np.ceil(v.max())) + 1,
+            int(np.floor(u.min())),
+            int(np.ceil(u.max())) + 1,
+        )
+        rects.append(shadow)
+    if any(r is None for r in rects):
+        return (0, H, 0, W), shadow
+    r = np.array(rects)
+    r0, r1 = max(r[:, 0].min() - 4, 0), min(r[:, 1].max() + 4, H)
+    c0, c1 = max(r[:, 2].min() - 4, 0), min(r[:, 3].max() + 4, W)
+    if r1 <= r0 or c1 <= c0:
+        return None, None
+    return (int(r0), int(r1), int(c0), int(c1)), shadow
+
+
+def _dropout_prob(ir: np.ndarray, cos: np.ndarray, z: np.ndarray) -> np.ndarray:
+    amp = ir * cos / np.maximum(z * z, 1e-6)
+    return (1.0 / (1.0 + np.exp(np.clip((amp - _AMP0) / _AMP_S, -50, 50)))).astype(np.float32)
+
+
+def _shade(albedo, normal, light, emissive=None):
+    """Ambient + Lambert; ``albedo [n, 3]``, ``normal [3, n]``."""
+    lam = np.maximum(light @ normal, 0.0)
+    f = 0.55 + 0.5 * lam
+    if emissive is not None:
+        f = np.where(emissive, 1.0, f)
+    return albedo * f[:, None]
+
+
+def _illumination_gain(spec: ScenarioSpec, n: int, fps: float) -> np.ndarray:
+    """``[T, 3]`` per-frame RGB gain."""
+    g = np.ones((n, 3), np.float32)
+    a = spec.illumination_strength
+    t = np.arange(n) / fps
+    if spec.illumination == "drift":
+        period = max(n / fps, 1.0)
+        s = np.sin(2 * np.pi * t / period)
+        c = np.sin(np.pi * t / period)
+        g *= (1 + 0.5 * a * s)[:, None]
+        g *= np.stack([1 + 0.25 * a * c, np.ones_like(c), 1 - 0.25 * a * c], -1)
+    elif spec.illumination == "switch":
+        k = n // 2
+        off = np.array([1 - a, 1 - 1.15 * a, 1 - 1.4 * a], np.float32).clip(0.2, 1)
+        g[k:] = off
+    elif spec.illumination != "none":
+        raise ValueError(f"unknown illumination {spec.illumination!r}")
+    return g
+
+
+# ---------------------------------------------------------------------------------------------
+# The generator.
+
+
+def _resolve(name: str | ScenarioSpec, overrides: dict) -> tuple[str, ScenarioSpec]:
+    if isinstance(name, ScenarioSpec):
+        spec, label = name, "custom"
+    else:
+        if name not in SCENARIOS:
+            raise KeyError(f"unknown scenario {name!r}; known: {sorted(SCENARIOS)}")
+        spec, label = SCENARIOS[name], name
+    fields = {f.name for f in dataclasses.fields(ScenarioSpec)}
+    bad = sorted(set(overrides) - fields)
+    if bad:
+        raise TypeError(f"unknown ScenarioSpec field(s) {bad}; known: {sorted(fields)}")
+    return label, dataclasses.replace(spec, **overrides)
+
+
+def make_sequence(
+    name: str | ScenarioSpec = "walk_across_medium",
+    seed: int = 0,
+    n_frames: int | None = None,
+    **overrides: Any,
+) -> SyntheticSequence:
+    """Render a synthetic RGB-D sequence.
+
+    name: a key of :data:`SCENARIOS` or a :class:`ScenarioSpec`. seed: layout, path
+    direction/offset, gait phase and noise (frame ``t`` of a seed is the same whatever the
+    sequence length). n_frames: default ``spec.n_frames``, clipped for single-pass paths
+    so the person stays in view. overrides: :class:`ScenarioSpec` fields.
+    """
+    label, spec = _resolve(name, overrides)
+    intr = KINECT_V2_DEPTH
+    H, W = HEIGHT, WIDTH
+    fps = float(spec.fps)
+    layout_rng = np.random.default_rng([seed, 0])
+    cam = _camera(spec.camera_height_m, spec.camera_pitch_deg)
+
+    n_req = int(n_frames) if n_frames is not None else int(spec.n_frames)
+    wps, radius, s0, walk_len = _plan_path(spec, layout_rng, n_req / fps)
+    if n_frames is None and np.isfinite(walk_len):
+        n_req = min(n_req, int(np.floor(walk_len / spec.speed_mps * fps)) + 1)
+    T = max(n_req, 1)
+    path = body.fillet_path(wps, radius)
+    t_s = np.arange(T) / fps
+    s = s0 + spec.speed_mps * t_s
+    root_xz, heading_xz = body.sample_path(path, s)
+    step = body.gait_parameters(spec.speed_mps)["step"]
+    phase0 = layout_rng.uniform(0, 2 * np.pi)
+    phase = phase0 + np.pi * (s - s0) / step
+
+    # Keep-out region of the walk (for furniture placement).
+    walked = path.xz[(path.s >= s0 - 0.1) & (path.s <= s[-1] + 0.1)]
+    xs, zs = walked[:, 0], walked[:, 1]
+    # The body reaches ~0.45 m from the path (stride, arm swing) and ~0.6 m sideways in view.
+    amin = float(np.min((xs - 0.6) / zs))
+    amax = float(np.max((xs + 0.6) / zs))
+    keep_out = (xs.min() - 0.45, xs.max() + 0.45, zs.min() - 0.45, zs.max() + 0.45, amin, amax)
+    scene = _scene(spec, cam, layout_rng, keep_out)
+    tex = _make_tex(layout_rng)
+
+    rays = rnd.pixel_rays(H, W, intr.fx, intr.fy, intr.cx, intr.cy)
+    rx, ry = rays[0].astype(np.float32), rays[1].astype(np.float32)
+    ray_norm = np.sqrt(rx * rx + ry * ry + 1)
+    light = cam.dir_to_cam(np.array([-0.35, 1.0, -0.6]) / np.linalg.norm([-0.35, 1.0, -0.6]))
+    light = light.astype(np.float32)
+
+    # --- static background, rendered once -----------------------------------------------
+    bg = rnd.GBuffer(H, W)
+    rnd.raycast(scene.prims, 0, bg, rays, intr)
+    bg_mat = np.array([p.material for p in scene.prims])
+    bg_lin = np.zeros((H, W, 3), np.float32)
+    bg_ir = np.zeros((H, W), np.float32)
+    for i in np.unique(bg.pid[bg.pid >= 0]):
+        sel = bg.pid == i
+        m = scene.materials[bg_mat[i]]
+        alb = _albedo(m, bg.uv[:, sel], tex)
+        bg_lin[sel] = _shade(alb, bg.normal[:, sel], light, np.full(len(alb), m.emissive))
+        bg_ir[sel] = m.ir
+    bg_z = np.where(np.isfinite(bg.z), bg.z, 0.0).astype(np.float32)  # m, 0 = no surface
+    bg_cos = np.abs(bg.normal[0] * rx + bg.normal[1] * ry + bg.normal[2]) / ray_norm
+    bg_blur = _blur(bg_lin, spec.colour_blur)
+    noise_scale = np.float32(spec.depth_noise_scale)
+    bg_sigma = kinect_v2_axial_sigma_mm(bg_z, np.arccos(np.clip(bg_cos, 0, 1))) * noise_scale
+    bg_zmm = bg_z * np.float32(1000.0)
+    bg_missing = _static_missing(bg_zmm, bg_cos, spec.max_range_mm)
+    bg_p_amp = _dropout_prob(bg_ir, bg_cos, bg_z)
+    bg_p_edge = _edge_prob(*_edge_flags(bg_z, bg.pid))
+    cand_r, cand_c = np.nonzero(((bg_p_amp > 1e-4) | (bg_p_edge > 0)) & ~bg_missing)
+    cand_amp, cand_edge = bg_p_amp[cand_r, cand_c], bg_p_edge[cand_r, cand_c]
+
+    # Pre-drawn noise: each frame reads a randomly offset window of one of K fields, which
+    # is statistically white noise again and ~10x cheaper than drawing fresh normals.
+    K, PAD = 3, 32
+    bank_rng = np.random.default_rng([seed, 2])
+    col_bank = np.rint(
+        bank_rng.standard_normal((K, H + PAD, W + PAD, 3), dtype=np.float32)
+        * np.float32(spec.colour_noise)
+    ).astype(np.int16)
+    bg_u8 = np.clip(np.rint(bg_blur), 0, 255).astype(np.uint8)
+    dep_bank = bank_rng.standard_normal((K, H + PAD, W + PAD), dtype=np.float32)
+    uni_bank = bank_rng.random((K, H + PAD, W + PAD), dtype=np.float32)
+    blk = bank_rng.random((K, (H + PAD) // 2 + 1, (W + PAD) // 2 + 1), dtype=np.float32)
+    blk_bank = np.repeat(np.repeat(blk, 2, axis=1), 2, axis=2)[:, : H + PAD, : W + PAD]
+
+    # --- per-frame dynamic objects --------------------------------------------------------
+    cl = spec.clothing
+    pm_base = _person_materials(cl, cl.shirt)
+    pm_changed = None
+    if spec.shirt_change is not None:
+        pm_changed = _person_materials(cl, tuple(spec.shirt_change[1]))
+    occ_mats = [_Material(oc.colour, _ir(oc.colour), "plain", 0.004, 0.05) for oc in spec.occluders]
+    n_parts = len(body.PART_NAMES)
+    gain = _illumination_gain(spec, T, fps)
+    unit_gain = bool(np.all(gain == 1.0))
+    blur_r = int(np.ceil(3 * spec.colour_blur)) + 1 if spec.colour_blur > 0 else 0
+
+    colour = np.empty((T, H, W, 3), np.uint8)
+    depth = np.empty((T, H, W), np.uint16)
+    mask = np.zeros((T, H, W), bool)
+    joints3d = np.empty((T, len(body.JOINT_NAMES), 3), np.float32)
+    joint_vis = np.zeros((T, len(body.JOINT_NAMES)), bool)
+    vis_count = np.zeros(T, np.int64)
+    unocc_count = np.zeros(T, np.int64)
+    joint_part_ok = np.zeros((len(body.JOINT_NAMES), n_parts), bool)
+    for j, jn in enumerate(body.JOINT_NAMES):
+        for pn in body.JOINT_PARTS[jn]:
+            joint_part_ok[j, body.P[pn]] = True
+
+    for t in range(T):
+        rng = np.random.default_rng([seed, 1, t])
+        kc, kd, ku = rng.integers(K, size=3)
+        off = rng.integers(PAD + 1, size=(3, 2))
+        col_noise = col_bank[kc, off[0, 0] : off[0, 0] + H, off[0, 1] : off[0, 1] + W]
+        dep_noise = dep_bank[kd, off[1, 0] : off[1, 0] + H, off[1, 1] : off[1, 1] + W]
+        u_edge = uni_bank[ku, off[2, 0] : off[2, 0] + H, off[2, 1] : off[2, 1] + W]
+        u_amp = blk_bank[ku, off[2, 1] : off[2, 1] + H, off[2, 0] : off[2, 0] + W]
+
+        pose = body.body_pose(root_xz[t], heading_xz[t], phase[t], spec.speed_mps, spec.height_m)
+        joints3d[t] = cam.to_cam(pose.joints) * 1000.0
+        mats = pm_base if (pm_changed is None or t < spec.shirt_change[0]) else pm_changed
+        dyn_mats = list(mats) + occ_mats
+        person_prims = _person_prims(pose, spec.height_m, cam, 0, 1)
+        occ_prims = []
+        for k, oc in enumerate(spec.occluders):
+            a = np.clip((t_s[t] - oc.t0_s) / max(oc.t1_s - oc.t0_s, 1e-9), 0.0, 1.0)
+            xz = (1 - a) * np.asarray(oc.start_xz) + a * np.asarray(oc.end_xz)
+            sx, sy, sz = oc.size_m
+            occ_prims.append(
+                rnd.box(
+                    cam.to_cam((xz[0], sy / 2, xz[1])),
+                    cam.R,
+                    np.array([sx, sy, sz]) / 2,
+                    2 + k,
+                    n_parts + k,
+                )
+            )
+        prims = person_prims + occ_prims
+        root_c = cam.to_cam((root_xz[t][0], 0.0, root_xz[t][1])).astype(np.float32)
+        win, shadow_rect = _dynamic_window(prims, root_xz[t], cam, intr, H, W)
+
+        if unit_gain:
+            cv2.add(bg_u8, col_noise, dst=colour[t], dtype=cv2.CV_8U)
+        else:
+            cv2.add(bg_blur * gain[t], col_noise, dst=colour[t], dtype=cv2.CV_8U)
+        dep = depth[t]
+        cv2.add(bg_zmm, bg_sigma * dep_noise, dst=dep, dtype=cv2.CV_16U)
+        missing = bg_missing.copy()
+        missing[cand_r, cand_c] |= (u_amp[cand_r, cand_c] < cand_amp) | (
+            u_edge[cand_r, cand_c] < cand_edge
+        )
+        if win is not None:
+            r0, r1, c0, c1 = win
+            ws = (slice(r0, r1), slice(c0, c1))
+            gb = rnd.GBuffer.over(bg.z[ws])
+            rays_w = rays[:, r0:r1, c0:c1]
+            rnd.raycast(person_prims, 0, gb, rays_w, intr, (r0, c0))
+            unocc_count[t] = int(np.count_nonzero(gb.pid >= 0))
+            if occ_prims:
+                rnd.raycast(occ_prims, len(person_prims), gb, rays_w, intr, (r0, c0))
+            dyn = gb.pid >= 0
+            obj = np.array([p.object_id for p in prims])
+            pmat = np.array([p.material for p in prims])
+            ppart = np.array([p.part for p in prims])
+            person = dyn & (obj[np.maximum(gb.pid, 0)] == 1)
+            mask[t][ws] = person
+            vis_count[t] = int(np.count_nonzero(person))
+
+            # Joint visibility: the joint's own part is the nearest surface at its pixel.
+            jc = joints3d[t]
+            ju = np.rint(intr.fx * jc[:, 0] / jc[:, 2] + intr.cx).astype(int) - c0
+            jv = np.rint(intr.fy * jc[:, 1] / jc[:, 2] + intr.cy).astype(int) - r0
+            for j in np.nonzero((ju >= 0) & (ju < c1 - c0) & (jv >= 0) & (jv < r1 - r0))[0]:
+                pid = gb.pid[jv[j], ju[j]]
+                if pid >= 0 and obj[pid] == 1:
+                    joint_vis[t, j] = joint_part_ok[j, ppart[pid]]
+
+            # ---- colour: shade the dynamic pixels, shadow the floor, re-blur locally ----
+            pid = gb.pid[dyn]
+            nrm = gb.normal[:, dyn]
+            uv_d = gb.uv[:, dyn]
+            alb = np.empty((len(pid), 3), np.float32)
+            ir = np.empty(len(pid), np.float32)
+            for i in np.unique(pid):
+                sel = pid == i
+                m = dyn_mats[pmat[i]]
+                alb[sel] = _albedo(m, uv_d[:, sel], tex)
+                ir[sel] = m.ir
+            pr0, pr1 = max(r0 - blur_r, 0), min(r1 + blur_r, H)
+            pc0, pc1 = max(c0 - blur_r, 0), min(c1 + blur_r, W)
+            patch = bg_lin[pr0:pr1, pc0:pc1].copy()
+            inner = (slice(r0 - pr0, r1 - pr0), slice(c0 - pc0, c1 - pc0))
+            loc = patch[inner]
+            if shadow_rect is not None:
+                s0, s1 = max(shadow_rect[0], r0), min(shadow_rect[1], r1)
+                s2, s3 = max(shadow_rect[2], c0), min(shadow_rect[3], c1)
+                ss = (slice(s0, s1), slice(s2, s3))
+                zf = bg_z[ss]
+                d2 = (
+                    (zf * rx[ss] - root_c[0]) ** 2
+                    + (zf * ry[ss] - root_c[1]) ** 2
+                    + (zf - root_c[2]) ** 2
+                )
+                on_floor = (bg.pid[ss] == scene.floor_index) & ~dyn[
+                    s0 - r0 : s1 - r0, s2 - c0 : s3 - c0
+                ]
+                shade = np.where(on_floor, 1 - 0.45 * np.exp(-d2 / (2 * 0.3**2)), 1.0)
+                loc[s0 - r0 : s1 - r0, s2 - c0 : s3 - c0] *= shade[..., None].astype(np.float32)
+            loc[dyn] = _shade(alb, nrm, light)
+            patch = _blur(patch, spec.colour_blur)[inner]
+            if not unit_gain:
+                patch = patch * gain[t]
+            cv2.add(patch, col_noise[ws], dst=colour[t][ws], dtype=cv2.CV_8U)
+
+            # ---- depth: noise, dropouts and discontinuities inside the window ----
+            zl = np.where(dyn, gb.z, bg.z[ws])
+            zl = np.where(np.isfinite(zl), zl, 0.0).astype(np.float32)
+            cosd = np.abs(nrm[0] * rx[ws][dyn] + nrm[1] * ry[ws][dyn] + nrm[2]) / ray_norm[ws][dyn]
+            cos_l = bg_cos[ws].copy()
+            cos_l[dyn] = cosd
+            sigma_l = bg_sigma[ws].copy()
+            sigma_l[dyn] = (
+                kinect_v2_axial_sigma_mm(zl[dyn], np.arccos(np.clip(cosd, 0, 1))) * noise_scale
+            )
+            p_amp_l = bg_p_amp[ws].copy()
+            p_amp_l[dyn] = _dropout_prob(ir, cosd, zl[dyn])
+            er0, er1, ec0, ec1 = max(r0 - 1, 0), min(r1 + 1, H), max(c0 - 1, 0), min(c1 + 1, W)
+            ze = bg_z[er0:er1, ec0:ec1].copy()
+            ke = bg.pid[er0:er1, ec0:ec1].copy()
+            e_in = (slice(r0 - er0, r1 - er0), slice(c0 - ec0, c1 - ec0))
+            ze[e_in] = zl
+            ke[e_in] = np.where(dyn, gb.pid + 100000, ke[e_in])
+            far, near = _edge_flags(ze, ke)
+            p_edge_l = _edge_prob(far[e_in], near[e_in])
+            zl_mm = zl * np.float32(1000.0)
+            missing[ws] = (
+                _static_missing(zl_mm, cos_l, spec.max_range_mm)
+                | (u_amp[ws] < p_amp_l)
+                | (u_edge[ws] < p_edge_l)
+            )
+            cv2.add(zl_mm, sigma_l * dep_noise[ws], dst=dep[ws], dtype=cv2.CV_16U)
+        np.putmask(dep, missing, 0)
+        if spec.colour_holes:
+            colour[t][missing] = 0
+    vis_frac = (vis_count / np.maximum(unocc_count, 1)).astype(np.float32)
+
+    boxes = np.zeros((T, 4), np.float32)
+    rows_any = mask.any(axis=2)
+    cols_any = mask.any(axis=1)
+    visible = rows_any.any(axis=1)
+    for t in np.nonzero(visible)[0]:
+        r = np.nonzero(rows_any[t])[0]
+        c = np.nonzero(cols_any[t])[0]
+        boxes[t] = (c[0], r[0], c[-1] - c[0] + 1, r[-1] - r[0] + 1)
+    joints2d = np.stack(
+        [
+            intr.fx * joints3d[..., 0] / joints3d[..., 2] + intr.cx,
+            intr.fy * joints3d[..., 1] / joints3d[..., 2] + intr.cy,
+        ],
+        -1,
+    ).astype(np.float32)
+    occlusion = np.where(vis_frac >= 0.97, 0, np.where(vis_frac > 0.0, 1, 2)).astype(np.int8)
+    occlusion[unocc_count == 0] = 2
+    world_to_camera = np.eye(4)
+    world_to_camera[:3, :3] = cam.R
+    world_to_camera[:3, 3] = -cam.R @ cam.C * 1000.0
+    meta = dict(
+        spec=spec,
+        seed=seed,
+        camera_height_m=spec.camera_height_m,
+        camera_pitch_deg=spec.camera_pitch_deg,
+        world_to_camera_mm=world_to_camera,
+        up=cam.dir_to_cam(np.array([0.0, 1.0, 0.0])),
+        joint_visible=joint_vis,
+        visible_fraction=vis_frac,
+        occlusion=occlusion,
+        gain=gain,
+        root_xz_m=root_xz.astype(np.float32),
+        heading_xz=heading_xz.astype(np.float32),
+        path_waypoints_m=np.asarray(wps),
+        walk_length_m=walk_len,
+        part_names=body.PART_NAMES,
+        box_convention="xywh top-left, 0-based, pixel c covers [c, c+1); tight box of mask",
+    )
+    return SyntheticSequence(
+        colour,
+        depth,
+        boxes,
+        visible,
+        joints3d,
+        joints2d,
+        body.JOINT_NAMES,
+        mask,
+        intr,
+        fps,
+        label,
+        meta,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Consumers.
+
+
+def iter_frames(seq: SyntheticSequence) -> Iterator[Frame]:
+    """Yield one :class:`cpf_jax.types.Frame` (NumPy arrays) per time step."""
+    for t in range(len(seq.colour)):
+        yield Frame(colour=seq.colour[t], depth=seq.depth[t])
+
+
+def stacked_frames(seq: SyntheticSequence) -> Frame:
+    """All frames as one :class:`Frame` of ``[T, ...]`` arrays, ready for ``lax.scan``."""
+    return Frame(colour=seq.colour, depth=seq.depth)
+
+
+def contact_sheet(
+    seq: SyntheticSequence, frames: tuple[int, ...] | None = None, scale: float = 0.5
+) -> np.ndarray:
+    """``[h, w, 3] uint8`` RGB overview: per chosen frame, colour (with the GT box and joints)
+    above the colourised depth (missing = black)."""
+    T = len(seq.colour)
+    if frames is None:
+        frames = tuple(int(round(x)) for x in np.linspace(0, T - 1, min(4, T)))
+    cols = []
+    for t in frames:
+        rgb = cv2.cvtColor(seq.colour[t], cv2.COLOR_RGB2BGR)
+        if seq.visible[t]:
+            x, y, w, h = seq.boxes[t]
+            cv2.rectangle(rgb, (int(x), int(y)), (int(x + w - 1), int(y + h - 1)), (0, 255, 0), 1)
+        for j, (u, v) in enumerate(seq.joints2d[t]):
+            c = (0, 255, 255) if seq.meta["joint_visible"][t, j] else (0, 0, 255)
+            cv2.circle(rgb, (int(round(u)), int(round(v))), 3, c, -1)
+        d = seq.depth[t].astype(np.float32)
+        dc = cv2.applyColorMap(
+            np.clip((d - 500) / 4000 * 255, 0, 255).astype(np.uint8), cv2.COLORMAP_TURBO
+        )
+        dc[d == 0] = 0
+        cv2.putText(
+            rgb, f"{seq.name} t={t}", (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1
+        )
+        cols.append(np.concatenate([rgb, dc], axis=0))
+    sheet = np.concatenate(cols, axis=1)
+    sheet = cv2.resize(sheet, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(sheet, cv2.COLOR_BGR2RGB)
+
+
+def to_folder(seq: SyntheticSequence, path: str | os.PathLike) -> str:
+    """Write the recorded-folder layout and return ``path``.
+
+    ``rgb/000000.png`` (8-bit RGB), ``depth/000000.png`` (16-bit, mm, 0 = missing),
+    ``groundtruth_rect.txt`` (OTB: ``x,y,w,h`` per line, 1-based top-left, ``0,0,0,0`` when
+    not visible), plus ``groundtruth_joints.npz`` (joints3d mm, joints2d, visible, names)
+    and ``info.json`` (fps, intrinsics, scenario).
+    """
+    path = os.fspath(path)
+    os.makedirs(os.path.join(path, "rgb"), exist_ok=True)
+    os.makedirs(os.path.join(path, "depth"), exist_ok=True)
+    for t in range(len(seq.colour)):
+        cv2.imwrite(
+            os.path.join(path, "rgb", f"{t:06d}.png"),
+            cv2.cvtColor(seq.colour[t], cv2.COLOR_RGB2BGR),
+        )
+        cv2.imwrite(os.path.join(path, "depth", f"{t:06d}.png"), seq.depth[t])
+    with open(os.path.join(path, "groundtruth_rect.txt"), "w") as fh:
+        for box, vis in zip(seq.boxes, seq.visible, strict=True):
+            if vis:
+                x, y, w, h = (float(v) for v in box)
+                fh.write(f"{x + 1:g},{y + 1:g},{w:g},{h:g}\n")
+            else:
+                fh.write("0,0,0,0\n")
+    np.savez_compressed(
+        os.path.join(path, "groundtruth_joints.npz"),
+        joints3d=seq.joints3d,
+        joints2d=seq.joints2d,
+        visible=seq.visible,
+        joint_names=np.array(seq.joint_names),
+    )
+    with open(os.path.join(path, "info.json"), "w") as fh:
+        json.dump(
+            dict(
+                name=seq.name,
+                fps=seq.fps,
+                intrinsics=seq.intrinsics._asdict(),
+                width=WIDTH,
+                height=HEIGHT,
+                depth_unit="mm",
+                joint_names=list(seq.joint_names),
+            ),
+            fh,
+            indent=1,
+        )
+    return path
