@@ -1,0 +1,466 @@
+"""cpf_jax.kernels.histogram against cv2.calcHist / cv2.compareHist, under jit and vmap."""
+
+from __future__ import annotations
+
+import functools
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from cpf_jax.kernels import boxes as B
+from cpf_jax.kernels import color
+from cpf_jax.kernels import histogram as H
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+HB, SB = H.DEFAULT_BINS
+NB = HB * SB
+FH, FW = 240, 320  # 76,800 px: the general path needs two uint16 tiles
+WINDOW = (96, 128)  # fast-path window used throughout; its fallback uses 9 overlapping tiles
+
+
+# ----------------------------------------------------------------------------- references
+
+
+def _frame(seed: int) -> np.ndarray:
+    """A textured RGB frame: noise, smooth blobs and flat patches (grey, saturated)."""
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 256, (FH // 8, FW // 8, 3), dtype=np.uint8)
+    img = cv2.resize(small, (FW, FH), interpolation=cv2.INTER_LINEAR)
+    img = np.clip(img.astype(np.int16) + rng.integers(-20, 21, img.shape), 0, 255)
+    img = img.astype(np.uint8)
+    img[10:60, 10:90] = 128
+    img[100:160, 200:300] = (200, 30, 40)
+    return img
+
+
+def _hsv(img: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(img, cv2.COLOR_RGB2HSV)
+
+
+def _ref_hist(hsv: np.ndarray, rect) -> np.ndarray:
+    """cv2.calcHist of the clipped crop (zeros for an empty crop)."""
+    fh, fw = hsv.shape[:2]
+    x0, y0, x1, y1 = (int(v) for v in rect)
+    x0, x1 = np.clip([x0, x1], 0, fw)
+    y0, y1 = np.clip([y0, y1], 0, fh)
+    if x1 <= x0 or y1 <= y0:
+        return np.zeros(NB, np.float32)
+    crop = np.ascontiguousarray(hsv[y0:y1, x0:x1])
+    return cv2.calcHist([crop], [0, 1], None, [HB, SB], [0, 180, 0, 256]).ravel()
+
+
+def _ref_hists(hsv, rects) -> np.ndarray:
+    rects = np.asarray(rects)
+    flat = rects.reshape(-1, 4)
+    return np.stack([_ref_hist(hsv, r) for r in flat]).reshape(rects.shape[:-1] + (NB,))
+
+
+def _cv_distance(h: np.ndarray, q: np.ndarray) -> float:
+    return cv2.compareHist(h.astype(np.float32), q.astype(np.float32), cv2.HISTCMP_BHATTACHARYYA)
+
+
+def _assert_distances_close(d, ref):
+    d, ref = np.asarray(d, np.float64), np.asarray(ref, np.float64)
+    # 1 - BC in float32 cancels near d = 0: d^2 agrees to 1e-6, hence d to ~1e-3 there.
+    np.testing.assert_allclose(d**2, ref**2, atol=2e-6)
+    np.testing.assert_allclose(d, ref, atol=2e-3)
+
+
+# Edge cases: (x0, y0, x1, y1) in a 320 x 240 frame.
+EDGE_RECTS = np.array(
+    [
+        [40, 30, 100, 110],  # ordinary
+        [-30, -40, 50, 60],  # negative coords, clipped
+        [300, 220, 400, 300],  # crosses the bottom-right corner
+        [330, 10, 400, 50],  # fully outside (right)
+        [10, -80, 50, -5],  # fully outside (above)
+        [-50, -50, 0, 0],  # touches the corner from outside: empty
+        [60, 60, 60, 120],  # zero width
+        [90, 90, 70, 120],  # x1 < x0
+        [0, 0, FW, FH],  # the whole frame, touching every border
+        [-100, -100, FW + 100, FH + 100],  # larger than the frame
+        [FW - 1, FH - 1, FW, FH],  # last pixel
+        [0, 100, 1, 101],  # one pixel on the left border
+    ],
+    np.int32,
+)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    imgs = [_frame(s) for s in range(3)]
+    bins = [np.asarray(_bins(img)) for img in imgs]
+    return imgs, [_hsv(i) for i in imgs], bins
+
+
+@jax.jit
+def _bins(img):
+    return color.hs_bin_index(img, HB, SB)
+
+
+# ----------------------------------------------------------------------------- jitted kernels
+
+_general = jax.jit(functools.partial(H.box_histograms, n_bins=NB))
+_fast = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW))
+_fast_nofb = jax.jit(
+    functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW, fallback=False)
+)
+_fast_i32 = jax.jit(
+    functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW, count_dtype=jnp.int32)
+)
+_box_dist = jax.jit(functools.partial(H.box_distances, n_bins=NB, window=WINDOW))
+_box_dist_general = jax.jit(functools.partial(H.box_distances, n_bins=NB))
+_bhatt = jax.jit(H.bhattacharyya)
+
+
+def _origin_and_covers(rects, window=WINDOW, dtype=jnp.uint16):
+    r = B.clip_rect(jnp.asarray(rects), FW, FH)
+    o = H.window_origin(r, window, (FH, FW))
+    return np.asarray(o), bool(H.window_covers(r, o, window, dtype))
+
+
+# ----------------------------------------------------------------------------- histograms
+
+
+def test_general_path_matches_calchist_on_edge_cases(frames):
+    _, hsvs, bins = frames
+    out = np.asarray(_general(bins[0], EDGE_RECTS))
+    assert out.shape == (len(EDGE_RECTS), NB) and out.dtype == np.float32
+    np.testing.assert_array_equal(out, _ref_hists(hsvs[0], EDGE_RECTS))
+
+
+def test_general_path_single_rect(frames):
+    _, hsvs, bins = frames
+    out = np.asarray(_general(bins[0], EDGE_RECTS[0]))
+    np.testing.assert_array_equal(out, _ref_hist(hsvs[0], EDGE_RECTS[0]))
+
+
+def _cloud_rects(seed, n=64, centre=(150, 120), size=(40, 56), spread=4.0):
+    rng = np.random.default_rng(seed)
+    c = np.asarray(centre) + rng.normal(0, spread, (n, 2))
+    wh = np.asarray(size) * (1 + 0.1 * rng.uniform(-1, 1, (n, 2)))
+    xywh = np.concatenate([c - wh / 2, wh], axis=1).astype(np.float32)
+    return xywh, np.array(B.xywh_to_rect(xywh))
+
+
+def test_fast_path_inside_window_matches_calchist(frames):
+    _, hsvs, bins = frames
+    _, rects = _cloud_rects(1)
+    rects[0] = (0, 0, 0, 0)  # an empty rect does not move the window
+    _, covers = _origin_and_covers(rects)
+    assert covers, "cloud should fit the window: this test must exercise the fast branch"
+    np.testing.assert_array_equal(np.asarray(_fast(bins[0], rects)), _ref_hists(hsvs[0], rects))
+    np.testing.assert_array_equal(
+        np.asarray(_fast_nofb(bins[0], rects)), _ref_hists(hsvs[0], rects)
+    )
+
+
+def test_fast_path_window_at_frame_border(frames):
+    _, hsvs, bins = frames
+    # A cloud in the bottom-right corner, boxes sticking out of the frame.
+    _, rects = _cloud_rects(2, centre=(FW - 10, FH - 10), size=(60, 50))
+    origin, covers = _origin_and_covers(rects)
+    assert covers and tuple(origin) == (FH - WINDOW[0], FW - WINDOW[1])
+    np.testing.assert_array_equal(np.asarray(_fast(bins[0], rects)), _ref_hists(hsvs[0], rects))
+
+
+def test_fast_path_falls_back_exactly_when_window_does_not_cover(frames):
+    _, hsvs, bins = frames
+    _, rects = _cloud_rects(3)
+    rects = np.concatenate([rects[:20], EDGE_RECTS])  # edge cases spread over the frame
+    _, covers = _origin_and_covers(rects)
+    assert not covers
+    np.testing.assert_array_equal(np.asarray(_fast(bins[0], rects)), _ref_hists(hsvs[0], rects))
+
+
+def test_without_fallback_counts_exactly_the_part_inside_the_window(frames):
+    # The documented bound of fallback=False: exact for rects in the window; a rect
+    # leaving it gets the histogram of its intersection with the window.
+    _, hsvs, bins = frames
+    _, rects = _cloud_rects(4, n=16)
+    wide = np.array([[0, 100, FW, 140]], np.int32)  # wider than the window
+    all_rects = np.concatenate([rects, wide])
+    origin, covers = _origin_and_covers(all_rects)
+    assert not covers
+    oy, ox = (int(v) for v in origin)
+    window_rect = np.array([ox, oy, ox + WINDOW[1], oy + WINDOW[0]])
+    clipped = np.concatenate(
+        [
+            np.maximum(all_rects[:, :2], window_rect[:2]),
+            np.minimum(all_rects[:, 2:], window_rect[2:]),
+        ],
+        axis=1,
+    )
+    out = np.asarray(_fast_nofb(bins[0], all_rects))
+    np.testing.assert_array_equal(out, _ref_hists(hsvs[0], clipped))
+    assert out[-1].sum() < _ref_hist(hsvs[0], wide[0]).sum()  # ... which is not the full rect
+
+
+def test_uint16_limit_falls_back_and_int32_table_stays_fast(frames):
+    _, hsvs, bins = frames
+    # 100 x 96 = 9,600 px fits uint16; make the window big and a rect of >= 65,536 px.
+    big = np.array([[0, 0, 300, 220], [10, 10, 50, 50]], np.int32)  # 66,000 px
+    window = (FH, FW)
+    _, covers16 = _origin_and_covers(big, window, jnp.uint16)
+    _, covers32 = _origin_and_covers(big, window, jnp.int32)
+    assert not covers16 and covers32
+    ref = _ref_hists(hsvs[0], big)
+    f16 = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=window))
+    f32 = jax.jit(
+        functools.partial(H.rect_histograms_fast, n_bins=NB, window=window, count_dtype=jnp.int32)
+    )
+    np.testing.assert_array_equal(np.asarray(f16(bins[0], big)), ref)
+    np.testing.assert_array_equal(np.asarray(f32(bins[0], big)), ref)
+
+
+def test_int32_table_fast_path(frames):
+    _, hsvs, bins = frames
+    _, rects = _cloud_rects(5)
+    np.testing.assert_array_equal(np.asarray(_fast_i32(bins[0], rects)), _ref_hists(hsvs[0], rects))
+
+
+def test_cell_rects_and_explicit_origin(frames):
+    # Per-cell histograms: k x k cells of each particle box, rects [N, k*k, 4].
+    _, hsvs, bins = frames
+    _, rects = _cloud_rects(6, n=32)
+    k = 3
+    x0, y0, x1, y1 = (rects[:, i : i + 1] for i in range(4))
+    fx = np.arange(k + 1) / k
+    xs = np.floor(x0 + (x1 - x0) * fx + 0.5).astype(np.int32)
+    ys = np.floor(y0 + (y1 - y0) * fx + 0.5).astype(np.int32)
+    cells = np.stack(
+        [
+            np.stack([xs[:, j], ys[:, i], xs[:, j + 1], ys[:, i + 1]], axis=-1)
+            for i in range(k)
+            for j in range(k)
+        ],
+        axis=1,
+    )
+    assert cells.shape == (32, k * k, 4)
+    origin, covers = _origin_and_covers(cells)
+    assert covers
+    out = np.asarray(_fast(bins[0], cells, origin=jnp.asarray(origin)))
+    ref = _ref_hists(hsvs[0], cells)
+    np.testing.assert_array_equal(out, ref)
+    # Cell histograms add up to the box histogram.
+    np.testing.assert_array_equal(out.sum(axis=1), _ref_hists(hsvs[0], rects))
+
+
+def test_odd_frame_many_overlapping_tiles():
+    # 37 x 53 frame, 16 x 20 window: the fallback tiles overlap at the right and bottom.
+    rng = np.random.default_rng(7)
+    img = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
+    hsv = _hsv(img)
+    bins = _bins(img)
+    rects = rng.integers(-10, 60, (40, 4)).astype(np.int32)
+    out = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=(16, 20)))(
+        bins, rects
+    )
+    np.testing.assert_array_equal(np.asarray(out), _ref_hists(hsv, rects))
+
+
+def test_masked_pixels_are_not_counted(frames):
+    _, hsvs, bins = frames
+    masked = np.asarray(bins[0]).copy()
+    masked[:, : FW // 2] = -1
+    rect = np.array([[100, 50, 220, 150]], np.int32)
+    out = np.asarray(_general(masked, rect))
+    ref = _ref_hist(hsvs[0], [FW // 2, 50, 220, 150])
+    np.testing.assert_array_equal(out[0], ref)
+
+
+def test_histograms_under_vmap_over_frames(frames):
+    imgs, hsvs, bins = frames
+    _, rects = _cloud_rects(8, n=24)
+    rect_sets = np.stack([rects, rects + 7, np.concatenate([rects[:12], EDGE_RECTS])])
+    batched = jax.vmap(functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW))
+    out = np.asarray(jax.jit(batched)(jnp.stack(bins), rect_sets))
+    for i in range(3):
+        np.testing.assert_array_equal(out[i], _ref_hists(hsvs[i], rect_sets[i]))
+    general = np.asarray(
+        jax.jit(jax.vmap(functools.partial(H.box_histograms, n_bins=NB)))(
+            jnp.stack(bins), rect_sets
+        )
+    )
+    np.testing.assert_array_equal(general, out)
+
+
+# ----------------------------------------------------------------------------- window placement
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.integers(-60, FW + 20),
+    st.integers(-60, FH + 20),
+    st.lists(
+        st.tuples(st.integers(0, 40), st.integers(0, 40), st.integers(0, 80), st.integers(0, 50)),
+        min_size=8,
+        max_size=8,
+    ),
+)
+def test_window_origin_covers_any_cloud_that_fits(x, y, offsets):
+    rects = np.array([[x + a, y + b, x + a + w, y + b + h] for a, b, w, h in offsets], np.int32)
+    clipped = np.asarray(B.clip_rect(jnp.asarray(rects), FW, FH))
+    ne = (clipped[:, 2] > clipped[:, 0]) & (clipped[:, 3] > clipped[:, 1])
+    origin, covers = _origin_and_covers(rects)
+    oy, ox = origin
+    assert 0 <= oy <= FH - WINDOW[0] and 0 <= ox <= FW - WINDOW[1]
+    if ne.any():
+        span_x = clipped[ne, 2].max() - clipped[ne, 0].min()
+        span_y = clipped[ne, 3].max() - clipped[ne, 1].min()
+        assert covers == (span_x <= WINDOW[1] and span_y <= WINDOW[0])
+    else:
+        assert covers
+
+
+def test_suggest_window():
+    assert H.suggest_window((150, 200), 15, (424, 512)) == (352, 304)
+    assert H.suggest_window((400, 500), 30, (424, 512)) == (424, 512)
+
+
+# ----------------------------------------------------------------------------- distances
+
+
+def test_bhattacharyya_matches_compare_hist():
+    rng = np.random.default_rng(9)
+    p = rng.random((20, NB)).astype(np.float32) * 100
+    p[:5, : NB // 2] = 0  # sparse histograms
+    q = rng.random(NB).astype(np.float32)
+    d = np.asarray(_bhatt(p, q))
+    ref = np.array([_cv_distance(h, q) for h in p])
+    np.testing.assert_allclose(d, ref, atol=1e-6)
+
+
+def test_bhattacharyya_special_cases():
+    q = np.arange(NB, dtype=np.float32)
+    disjoint = np.zeros(NB, np.float32)
+    disjoint[0] = 5  # q[0] == 0: no overlap with q
+    empty = np.zeros(NB, np.float32)
+    d = np.asarray(_bhatt(np.stack([q * 3, disjoint, empty]), q))
+    np.testing.assert_allclose(d, [0.0, 1.0, 1.0], atol=1e-6)
+    assert np.isfinite(d).all()
+    assert _cv_distance(disjoint, q) == pytest.approx(1.0)
+    assert float(_bhatt(empty, empty)) == 1.0
+
+
+def test_bhattacharyya_gradients_are_finite():
+    q = jnp.zeros(NB).at[: NB // 2].set(1.0)
+    for p in (q, q.at[0].set(0.0), jnp.zeros(NB)):
+        g = jax.grad(lambda p: H.bhattacharyya(p, q))(p)
+        assert np.isfinite(np.asarray(g)).all()
+
+
+def _opencv_loop(hsv, xywh, q):
+    """The per-particle baseline: crop, calcHist, compareHist."""
+    rects = np.asarray(B.xywh_to_rect(jnp.asarray(xywh)))
+    return np.array([_cv_distance(_ref_hist(hsv, r), q) for r in rects])
+
+
+def test_box_distances_match_opencv_loop(frames):
+    _, hsvs, bins = frames
+    xywh, rects = _cloud_rects(10, n=200)
+    q = _ref_hist(hsvs[0], rects[0])
+    xywh[1] = xywh[0]  # identical histogram: d = 0
+    assert _origin_and_covers(rects)[1]
+    ref = _opencv_loop(hsvs[0], xywh, q)
+    _assert_distances_close(_box_dist(bins[0], xywh, q), ref)
+    _assert_distances_close(_box_dist_general(bins[0], xywh, q), ref)
+
+
+def test_box_distances_edge_boxes_and_fallback(frames):
+    _, hsvs, bins = frames
+    xywh, _ = _cloud_rects(11, n=40)
+    edge = np.array(
+        [[-500, -500, 30, 30], [10, 10, 0, 0], [-20.4, -10.6, 60.2, 40.9], [300, 200, 80, 80]],
+        np.float32,
+    )
+    xywh = np.concatenate([xywh, edge])
+    q = _ref_hist(hsvs[0], [120, 80, 180, 160])
+    d = np.asarray(_box_dist(bins[0], xywh, q))
+    _assert_distances_close(d, _opencv_loop(hsvs[0], xywh, q))
+    assert d[-4] == 1.0 and d[-3] == 1.0  # empty boxes: the worst distance
+
+
+def test_distances_empty_reference_is_one(frames):
+    _, _, bins = frames
+    xywh, _ = _cloud_rects(12, n=8)
+    d = np.asarray(_box_dist(bins[0], xywh, np.zeros(NB, np.float32)))
+    np.testing.assert_array_equal(d, 1.0)
+
+
+def test_box_distances_under_vmap_over_frames_and_box_sets(frames):
+    _, hsvs, bins = frames
+    xywh, rects = _cloud_rects(13, n=50)
+    q = _ref_hist(hsvs[0], rects[0])
+    box_sets = np.stack(
+        [xywh, xywh + np.float32([5, -3, 0, 0]), xywh * np.float32([1, 1, 1.1, 0.9])]
+    )
+    out = np.asarray(
+        jax.jit(jax.vmap(_box_dist, in_axes=(0, 0, None)))(jnp.stack(bins), box_sets, q)
+    )
+    for i in range(3):
+        _assert_distances_close(out[i], _opencv_loop(hsvs[i], box_sets[i], q))
+    # vmap over box sets only (one frame).
+    out1 = np.asarray(jax.jit(jax.vmap(_box_dist, in_axes=(None, 0, None)))(bins[1], box_sets, q))
+    for i in range(3):
+        _assert_distances_close(out1[i], _opencv_loop(hsvs[1], box_sets[i], q))
+
+
+def test_cell_distances_with_per_cell_references(frames):
+    _, hsvs, bins = frames
+    _, rects = _cloud_rects(14, n=30)
+    half = (rects[:, 0] + rects[:, 2]) // 2
+    cells = np.stack(
+        [
+            np.stack([rects[:, 0], rects[:, 1], half, rects[:, 3]], -1),
+            np.stack([half, rects[:, 1], rects[:, 2], rects[:, 3]], -1),
+        ],
+        axis=1,
+    )
+    refs = _ref_hists(hsvs[0], cells[0])  # [2, NB]: one reference per cell
+    f = jax.jit(functools.partial(H.rect_distances, n_bins=NB, window=WINDOW))
+    d = np.asarray(f(bins[0], cells, refs))
+    assert d.shape == (30, 2)
+    ref = np.array(
+        [[_cv_distance(_ref_hist(hsvs[0], c), refs[j]) for j, c in enumerate(row)] for row in cells]
+    )
+    _assert_distances_close(d, ref)
+
+
+def test_no_retrace_between_frames(frames):
+    _, hsvs, bins = frames
+    f = jax.jit(functools.partial(H.box_distances, n_bins=NB, window=WINDOW))
+    q = _ref_hist(hsvs[0], [10, 10, 60, 60])
+    for seed in range(3):
+        xywh, _ = _cloud_rects(20 + seed)
+        f(bins[seed], xywh, q).block_until_ready()
+    assert f._cache_size() == 1
+
+
+# ----------------------------------------------------------------------------- shared-size map
+
+
+def test_shared_size_distance_map_matches_general_path(frames):
+    _, hsvs, bins = frames
+    q = _ref_hist(hsvs[0], [120, 80, 170, 150])
+    size = jnp.asarray([70, 50])  # (rh, rw)
+    f = jax.jit(
+        functools.partial(
+            H.shared_size_distance_map, n_bins=NB, map_shape=(24, 32), max_rect=(80, 64)
+        )
+    )
+    for origin in ([70, 110], [-40, FW - 20]):  # inside; partly outside (top-right)
+        origin = jnp.asarray(origin)
+        dmap = np.asarray(f(bins[0], size, origin, q))
+        ii, jj = np.meshgrid(np.arange(24), np.arange(32), indexing="ij")
+        y0, x0 = int(origin[0]) + ii.ravel(), int(origin[1]) + jj.ravel()
+        rects = np.stack([x0, y0, x0 + 50, y0 + 70], -1).astype(np.int32)
+        ref = np.array([_cv_distance(_ref_hist(hsvs[0], r), q) for r in rects]).reshape(24, 32)
+        _assert_distances_close(dmap, ref)
+        # Particles look their distance up by top-left corner; outside the map: 1.
+        tl = np.array([[x0[5], y0[5]], [int(origin[1]) - 1, int(origin[0])]], np.int32)
+        got = np.asarray(H.distances_from_map(jnp.asarray(dmap), origin, tl))
+        np.testing.assert_allclose(got, [dmap.ravel()[5], 1.0])
