@@ -316,6 +316,17 @@ def test_window_origin_covers_any_cloud_that_fits(x, y, offsets):
         assert covers
 
 
+@pytest.mark.parametrize("x,y", [(50, 40), (51, 41), (0, 0), (FW - WINDOW[1], FH - WINDOW[0])])
+def test_window_origin_covers_cloud_of_exactly_window_size(x, y):
+    wh, ww = WINDOW
+    rects = np.array([[x, y, x + 10, y + 10], [x + ww - 7, y + wh - 3, x + ww, y + wh]], np.int32)
+    origin, covers = _origin_and_covers(rects)
+    assert covers and tuple(origin) == (y, x)
+    # One pixel more in either direction no longer fits.
+    assert not _origin_and_covers(rects + np.int32([0, 0, 1, 0]))[1] or x + ww == FW
+    assert not _origin_and_covers(rects + np.int32([0, 0, 0, 1]))[1] or y + wh == FH
+
+
 def test_suggest_window():
     assert H.suggest_window((150, 200), 15, (424, 512)) == (352, 304)
     assert H.suggest_window((400, 500), 30, (424, 512)) == (424, 512)
