@@ -116,7 +116,7 @@ def gait_parameters(speed: float) -> dict:
     return dict(
         step=step,
         hip=np.arcsin(min(step / (2 * (THIGH + SHIN)), 0.6)),
-        knee_swing=np.radians(30 + 25 * min(v, 1.5)),
+        knee_swing=np.radians(25 + 25 * min(v, 1.5)),
         knee_stance=np.radians(5.0),
         arm=np.radians(6 + 15 * v),
         elbow=np.radians(12 + 10 * v),
@@ -146,7 +146,8 @@ def body_pose(
 
     sin_p, cos_p = np.sin(phase), np.cos(phase)
     alpha = g["hip"] * np.array([sin_p, -sin_p])  # thigh angle from vertical, forward > 0
-    swing = np.maximum(0.0, np.cos(np.array([phase, phase + np.pi]) + np.pi / 4)) ** 1.5
+    # Swing (thigh moving forward) is cos(phase) > 0; knee flexion peaks early in swing.
+    swing = np.maximum(0.0, np.cos(np.array([phase, phase + np.pi]) + np.pi / 6)) ** 1.5
     knee = g["knee_stance"] + g["knee_swing"] * swing
     beta = alpha - knee  # shank angle from vertical
     rho = np.clip(0.6 * beta, -0.45, 0.45)  # foot pitch: toe down at push-off, up at strike
