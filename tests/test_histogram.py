@@ -127,9 +127,39 @@ def _origin_and_covers(rects, window=WINDOW, dtype=jnp.uint16):
 
 def test_general_path_matches_calchist_on_edge_cases(frames):
     _, hsvs, bins = frames
+    ref = _ref_hists(hsvs[0], EDGE_RECTS)
+    # Few rects: masked scatter-add per rect.
+    assert len(EDGE_RECTS) <= H.SCATTER_MAX_RECTS
     out = np.asarray(_general(bins[0], EDGE_RECTS))
     assert out.shape == (len(EDGE_RECTS), NB) and out.dtype == np.float32
-    np.testing.assert_array_equal(out, _ref_hists(hsvs[0], EDGE_RECTS))
+    np.testing.assert_array_equal(out, ref)
+    # Many rects: the tiled integral histogram.
+    many = np.concatenate([EDGE_RECTS, EDGE_RECTS + 3])
+    assert len(many) > H.SCATTER_MAX_RECTS
+    np.testing.assert_array_equal(np.asarray(_general(bins[0], many)), _ref_hists(hsvs[0], many))
+    tiled = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=None))
+    np.testing.assert_array_equal(np.asarray(tiled(bins[0], EDGE_RECTS)), ref)
+
+
+def test_rect_reduce_with_custom_reduction(frames):
+    # Several scores from one pass: e.g. (distance, count of bin 0) per box.
+    _, hsvs, bins = frames
+    xywh, rects = _cloud_rects(15, n=40)
+    q = _ref_hist(hsvs[0], rects[0])
+
+    def reduce_fn(counts):
+        d = H.bhattacharyya(counts, q)
+        return jnp.stack([d, counts[..., 0], counts.sum(-1)], axis=-1)
+
+    f = jax.jit(
+        functools.partial(H.rect_reduce, reduce_fn=reduce_fn, n_bins=NB, window=WINDOW, chunk=16)
+    )
+    out = np.asarray(f(bins[0], rects))
+    ref = _ref_hists(hsvs[0], rects)
+    assert out.shape == (40, 3)
+    np.testing.assert_array_equal(out[:, 1], ref[:, 0])
+    np.testing.assert_array_equal(out[:, 2], ref.sum(-1))
+    _assert_distances_close(out[:, 0], [_cv_distance(h, q) for h in ref])
 
 
 def test_general_path_single_rect(frames):
@@ -245,6 +275,8 @@ def test_cell_rects_and_explicit_origin(frames):
     out = np.asarray(_fast(bins[0], cells, origin=jnp.asarray(origin)))
     ref = _ref_hists(hsvs[0], cells)
     np.testing.assert_array_equal(out, ref)
+    chunked = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW, chunk=7))
+    np.testing.assert_array_equal(np.asarray(chunked(bins[0], cells)), ref)
     # Cell histograms add up to the box histogram.
     np.testing.assert_array_equal(out.sum(axis=1), _ref_hists(hsvs[0], rects))
 
@@ -328,8 +360,12 @@ def test_window_origin_covers_cloud_of_exactly_window_size(x, y):
 
 
 def test_suggest_window():
-    assert H.suggest_window((150, 200), 15, (424, 512)) == (352, 304)
-    assert H.suggest_window((400, 500), 30, (424, 512)) == (424, 512)
+    frame = (424, 512)
+    sizes = [H.suggest_window((150, 200), 20, frame, n_particles=n) for n in (20, 1000, 100_000)]
+    assert sizes[0] < sizes[1] < sizes[2]  # more particles, wider cloud extremes
+    for wh, ww in sizes:
+        assert wh % 16 == 0 and ww % 16 == 0 and wh >= 220 and ww >= 165
+    assert H.suggest_window((400, 500), 30, frame) == frame  # capped at the frame
 
 
 # ----------------------------------------------------------------------------- distances

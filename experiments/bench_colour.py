@@ -1,0 +1,406 @@
+"""Benchmark: one jitted colour-filter step vs a per-particle OpenCV loop.
+
+    python experiments/bench_colour.py                # full run, writes results/bench_colour.{json,md}
+    python experiments/bench_colour.py --quick        # fewer repeats, no table 3.2 (smoke test)
+    python experiments/bench_colour.py --no-tune-malloc
+
+"Colour step" = what the colour filter does per frame on a 512 x 424 frame:
+RGB -> H-S bins of the frame, first-order AR propagation of the 8-tuple state
+(thesis eqs 3.14-3.17), exact Bhattacharyya distance of every particle's box
+(``cpf_jax.kernels.histogram.box_distances``), log-weights ``-d^2 / (2 sigma^2)``,
+log-sum-exp normalisation, weighted-mean estimate, systematic resampling.
+``make_colour_step`` builds it; swap it for the library filter
+(``cpf_jax.colour.build_colour_filter``) once that exists.
+
+The baseline does the same per frame with OpenCV and NumPy: one cvtColor, then
+per particle crop + ``cv2.calcHist`` on H and S + ``cv2.compareHist``
+(``HISTCMP_BHATTACHARYYA``). It is measured up to N = 10,000 and scaled linearly
+above (its cost is per particle).
+
+``--tune-malloc`` (default on) calls ``cpf_jax.cpu_tuning.tune_malloc()`` before
+JAX allocates anything. XLA_FLAGS are left as the environment sets them and
+recorded in the results.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def _parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--tune-malloc", dest="tune_malloc", action="store_true", default=True)
+    p.add_argument("--no-tune-malloc", dest="tune_malloc", action="store_false")
+    p.add_argument("--quick", action="store_true", help="few repeats, skip table 3.2")
+    p.add_argument("--repeats", type=int, default=50, help="timed steps per setting")
+    p.add_argument(
+        "--out", default=None, help="results path stem (default experiments/results/bench_colour)"
+    )
+    return p.parse_args(argv)
+
+
+ARGS = _parse_args() if __name__ == "__main__" else _parse_args([])
+if __name__ == "__main__" and ARGS.tune_malloc:
+    # Before JAX (and NumPy's big buffers) allocate: see cpf_jax.cpu_tuning.
+    from cpf_jax.cpu_tuning import tune_malloc
+
+    MALLOC_TUNED = tune_malloc()
+else:
+    MALLOC_TUNED = False
+
+import datetime  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import NamedTuple  # noqa: E402
+
+import cv2  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from cpf_jax.kernels import boxes as B  # noqa: E402
+from cpf_jax.kernels import histogram as H  # noqa: E402
+
+FRAME_H, FRAME_W = 424, 512
+BOX_WH = (150, 200)  # main benchmark box (w, h)
+TAU = np.array([10, 10, 1, 1, 0.1, 0.1, 0.1, 0.1], np.float32)  # thesis 3.3.1
+SIGMA = 0.1
+CLOUD_STD = 15.0  # px, initial spread of the particle centres
+# Steady-state std of the centres on this scene (the likelihood's width at sigma = 0.1):
+# sizes the static histogram window (histogram.suggest_window).
+WINDOW_SPREAD = 20.0
+SIZE_JITTER = 0.10  # initial box sizes +-10 %
+N_MAIN = (1_000, 10_000, 100_000)
+N_TABLE = (20, 40, 60, 80, 100, 120, 1_000, 10_000)
+TABLE_BOXES = ((100, 150), (150, 150), (150, 200), (150, 250))
+BASELINE_MAX_N = 10_000
+
+
+# ----------------------------------------------------------------------------- scene
+
+
+def make_frame(seed: int = 0) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """A 512 x 424 RGB indoor frame with a drawn person; returns ``(frame, person xywh)``.
+
+    Muted, textured background (walls, a door, a floor, furniture: low
+    saturation as in Kinect footage of rooms), a person filling a 150 x 200
+    box (skin, red shirt and arms, blue trousers), sensor-like noise.
+    """
+    rng = np.random.default_rng(seed)
+    img = np.empty((FRAME_H, FRAME_W, 3), np.float32)
+    img[:] = (178, 170, 158)  # wall
+    img[300:] = (120, 96, 74)  # wooden floor
+    img[60:300, 40:130] = (140, 120, 100)  # door
+    img[210:330, 360:480] = (90, 92, 98)  # grey sofa
+    img[40:120, 330:450] = (150, 160, 150)  # picture frame
+    # Texture: mostly luminance (shading), a little chroma.
+    coarse = rng.normal(0, 12, (FRAME_H // 8, FRAME_W // 8, 1)) + rng.normal(
+        0, 4, (FRAME_H // 8, FRAME_W // 8, 3)
+    )
+    img += cv2.resize(coarse.astype(np.float32), (FRAME_W, FRAME_H), interpolation=cv2.INTER_CUBIC)
+    w, h = BOX_WH
+    x0, y0 = 181, 112
+    cx = x0 + w // 2
+    cv2.ellipse(img, (cx, y0 + 22), (18, 22), 0, 0, 360, (224, 172, 140), -1)  # head
+    cv2.rectangle(img, (cx - 45, y0 + 45), (cx + 45, y0 + 125), (200, 30, 40), -1)  # shirt
+    cv2.rectangle(img, (x0 + 3, y0 + 48), (cx - 46, y0 + 125), (190, 40, 45), -1)  # arms
+    cv2.rectangle(img, (cx + 46, y0 + 48), (x0 + w - 3, y0 + 125), (190, 40, 45), -1)
+    cv2.rectangle(img, (cx - 42, y0 + 125), (cx - 3, y0 + h - 1), (40, 50, 120), -1)  # legs
+    cv2.rectangle(img, (cx + 3, y0 + 125), (cx + 42, y0 + h - 1), (40, 50, 120), -1)
+    img += rng.normal(0, 6, img.shape).astype(np.float32)  # sensor noise
+    return np.clip(img, 0, 255).astype(np.uint8), (float(x0), float(y0), float(w), float(h))
+
+
+def reference_histogram(frame: np.ndarray, xywh, bins=H.DEFAULT_BINS) -> np.ndarray:
+    hsv = cv2.cvtColor(frame, cv2.COLOR_RGB2HSV)
+    x0, y0, x1, y1 = np.asarray(B.xywh_to_rect(jnp.asarray(xywh, jnp.float32)))
+    crop = np.ascontiguousarray(hsv[y0:y1, x0:x1])
+    return cv2.calcHist([crop], [0, 1], None, list(bins), [0, 180, 0, 256]).ravel()
+
+
+def init_particles(key, n: int, xywh) -> jax.Array:
+    """``[n, 8]`` state (cx, cy, vx, vy, w, h, vw, vh): a cloud around the box, sizes +-10 %."""
+    x, y, w, h = xywh
+    k1, k2 = jax.random.split(key)
+    c = jnp.asarray([x + w / 2, y + h / 2]) + CLOUD_STD * jax.random.normal(k1, (n, 2))
+    wh = jnp.asarray([w, h]) * (1 + SIZE_JITTER * jax.random.uniform(k2, (n, 2), minval=-1))
+    zeros = jnp.zeros((n, 2))
+    return jnp.concatenate([c, zeros, wh, zeros], axis=1).astype(jnp.float32)
+
+
+# ----------------------------------------------------------------------------- the step
+
+
+class StepInfo(NamedTuple):
+    estimate: jax.Array  # [8] weighted mean of the state before resampling
+    log_likelihood: jax.Array  # [] log mean weight
+    ess: jax.Array  # [] effective sample size
+
+
+def make_colour_step(
+    n_particles: int, box_wh=BOX_WH, *, bins=H.DEFAULT_BINS, window=None, spread=WINDOW_SPREAD
+):
+    """Build ``step(key, particles [N, 8], frame [H, W, 3] uint8, ref_hist) -> (particles, info)``.
+
+    A minimal local colour particle filter (see the module docstring); the
+    static window for the fast histogram path comes from ``suggest_window``.
+    """
+    n_bins = bins[0] * bins[1]
+    if window is None:
+        window = H.suggest_window(box_wh, spread, (FRAME_H, FRAME_W), n_particles=n_particles)
+    tau = jnp.asarray(TAU)
+
+    def step(key, particles, frame, ref_hist):
+        k_noise, k_resample = jax.random.split(key)
+        # First-order AR: positions and sizes move by their velocities, all get noise.
+        noise = tau * jax.random.normal(k_noise, particles.shape)
+        pos = particles[:, [0, 1, 4, 5]] + particles[:, [2, 3, 6, 7]]
+        state = particles.at[:, [0, 1, 4, 5]].set(pos) + noise
+        cxcywh = state[:, [0, 1, 4, 5]]
+        frame_bins = H.hs_histogram_bins(frame, bins)
+        d = H.box_distances(
+            frame_bins, B.cxcywh_to_xywh(cxcywh), ref_hist, n_bins=n_bins, window=window
+        )
+        log_w = -(d**2) / (2 * SIGMA**2)
+        log_norm = jax.nn.logsumexp(log_w)
+        w = jnp.exp(log_w - log_norm)
+        estimate = w @ state
+        # Systematic resampling; a float32 cumulative sum may end below 1: clip.
+        u = (jax.random.uniform(k_resample) + jnp.arange(n_particles)) / n_particles
+        idx = jnp.clip(jnp.searchsorted(jnp.cumsum(w), u), 0, n_particles - 1)
+        info = StepInfo(estimate, log_norm - jnp.log(n_particles), 1.0 / jnp.sum(w * w))
+        return state[idx], info
+
+    return jax.jit(step)
+
+
+# ----------------------------------------------------------------------------- baseline
+
+
+def opencv_step(rng, particles: np.ndarray, frame: np.ndarray, ref_hist: np.ndarray, bins):
+    """The same step as a user would write it with OpenCV + NumPy (per-particle loop)."""
+    n = len(particles)
+    state = particles.copy()
+    state[:, [0, 1, 4, 5]] += state[:, [2, 3, 6, 7]]
+    state += TAU * rng.standard_normal(state.shape).astype(np.float32)
+    hsv = cv2.cvtColor(frame, cv2.COLOR_RGB2HSV)
+    ref = ref_hist.astype(np.float32)
+    d = np.empty(n)
+    for i, (cx, cy, _, _, w, h, _, _) in enumerate(state):
+        x0, y0 = int(np.floor(cx - w / 2 + 0.5)), int(np.floor(cy - h / 2 + 0.5))
+        x1, y1 = int(np.floor(cx + w / 2 + 0.5)), int(np.floor(cy + h / 2 + 0.5))
+        x0, x1 = max(x0, 0), min(x1, FRAME_W)
+        y0, y1 = max(y0, 0), min(y1, FRAME_H)
+        if x1 <= x0 or y1 <= y0:
+            d[i] = 1.0
+            continue
+        hist = cv2.calcHist([hsv[y0:y1, x0:x1]], [0, 1], None, list(bins), [0, 180, 0, 256])
+        d[i] = cv2.compareHist(hist.ravel(), ref, cv2.HISTCMP_BHATTACHARYYA)
+    log_w = -(d**2) / (2 * SIGMA**2)
+    w = np.exp(log_w - log_w.max())
+    w /= w.sum()
+    _ = w @ state
+    u = (rng.random() + np.arange(n)) / n
+    idx = np.clip(np.searchsorted(np.cumsum(w), u), 0, n - 1)
+    return state[idx]
+
+
+# ----------------------------------------------------------------------------- timing
+
+
+def _median_ms(times) -> float:
+    return float(np.median(times) * 1e3)
+
+
+def time_jax_step(n: int, box_wh, frame, repeats: int, bins=H.DEFAULT_BINS) -> dict:
+    x, y = FRAME_W / 2 - box_wh[0] / 2, FRAME_H / 2 - box_wh[1] / 2
+    xywh = (x, y, float(box_wh[0]), float(box_wh[1]))
+    step = make_colour_step(n, box_wh, bins=bins)
+    ref = jnp.asarray(reference_histogram(frame, xywh, bins))
+    frame_j = jnp.asarray(frame)
+    key = jax.random.key(0)
+    particles = init_particles(key, n, xywh)
+    # Warm-up: compile and let the cloud settle onto the target (not timed).
+    for i in range(5):
+        particles, _ = step(jax.random.fold_in(key, i), particles, frame_j, ref)
+    jax.block_until_ready(particles)
+    times = []
+    for i in range(repeats):
+        k = jax.random.fold_in(key, 1000 + i)
+        t0 = time.perf_counter()
+        particles, info = step(k, particles, frame_j, ref)
+        jax.block_until_ready((particles, info))
+        times.append(time.perf_counter() - t0)
+    ms = _median_ms(times)
+    return {"ms_per_frame": ms, "fps": 1e3 / ms, "final_ess": float(info.ess)}
+
+
+def fast_path_rate(n: int, box_wh, frame, frames: int = 20) -> float:
+    """Fraction of steps whose boxes all fit the static window (no exact fallback)."""
+    x, y = FRAME_W / 2 - box_wh[0] / 2, FRAME_H / 2 - box_wh[1] / 2
+    xywh = (x, y, float(box_wh[0]), float(box_wh[1]))
+    window = H.suggest_window(box_wh, WINDOW_SPREAD, (FRAME_H, FRAME_W), n_particles=n)
+    step = make_colour_step(n, box_wh)
+    ref = jnp.asarray(reference_histogram(frame, xywh))
+    key = jax.random.key(1)
+    particles = init_particles(key, n, xywh)
+
+    @jax.jit
+    def covers(particles, key):
+        # The rects the next step will evaluate (same propagation as the step).
+        k_noise, _ = jax.random.split(key)
+        noise = jnp.asarray(TAU) * jax.random.normal(k_noise, particles.shape)
+        state = particles.at[:, [0, 1, 4, 5]].add(particles[:, [2, 3, 6, 7]]) + noise
+        rects = B.clip_rect(
+            B.xywh_to_rect(B.cxcywh_to_xywh(state[:, [0, 1, 4, 5]])), FRAME_W, FRAME_H
+        )
+        origin = H.window_origin(rects, window, (FRAME_H, FRAME_W))
+        return H.window_covers(rects, origin, window)
+
+    hits = 0
+    for i in range(frames):
+        k = jax.random.fold_in(key, i)
+        hits += bool(covers(particles, k))
+        particles, _ = step(k, particles, jnp.asarray(frame), ref)
+    return hits / frames
+
+
+def time_opencv(n: int, frame, repeats: int, bins=H.DEFAULT_BINS) -> float:
+    x, y = FRAME_W / 2 - BOX_WH[0] / 2, FRAME_H / 2 - BOX_WH[1] / 2
+    xywh = (x, y, float(BOX_WH[0]), float(BOX_WH[1]))
+    ref = reference_histogram(frame, xywh, bins)
+    particles = np.asarray(init_particles(jax.random.key(0), n, xywh))
+    rng = np.random.default_rng(0)
+    particles = opencv_step(rng, particles, frame, ref, bins)  # warm-up
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        particles = opencv_step(rng, particles, frame, ref, bins)
+        times.append(time.perf_counter() - t0)
+    return _median_ms(times)
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _markdown(results: dict) -> str:
+    meta = results["meta"]
+    lines = [
+        "# Colour step benchmark",
+        "",
+        f"{meta['frame']} frame, box {meta['box']}, {meta['bins'][0]}x{meta['bins'][1]} H-S bins, "
+        f"{meta['cpu']} ({meta['cores']} cores), jax {meta['jax']}, {meta['date']}.",
+        f"Load average before / after: {meta['load_before']} / {meta['load_after']}; "
+        f"malloc tuned: {meta['malloc_tuned']}; XLA_FLAGS: `{meta['xla_flags'] or '(unset)'}`.",
+        f"Command: `{meta['command']}`",
+        "",
+        "| N | JAX ms/frame | JAX frames/s | OpenCV loop ms/frame | speed-up |",
+        "|---:|---:|---:|---:|---:|",
+    ]
+    for n in N_MAIN:
+        r = results.get(str(n))
+        if r is None:
+            continue
+        scaled = "" if n <= BASELINE_MAX_N else " (scaled)"
+        lines.append(
+            f"| {n:,} | {r['ms_per_frame']:.2f} | {r['fps']:.1f} | "
+            f"{r['baseline_ms_per_frame']:.1f}{scaled} | {r['speedup']:.0f}x |"
+        )
+    table = results.get("table_3_2")
+    if table:
+        ns = table["n_particles"]
+        lines += [
+            "",
+            "Table 3.2 (thesis: C++ at 3.2 GHz, box 150x200: N=20 18.4, N=100 4.85, N=120 3.81 "
+            "frames/s): frames/s of the JAX colour step by box size (w x h) and N.",
+            "",
+            "| box | " + " | ".join(f"{n:,}" for n in ns) + " |",
+            "|---|" + "---:|" * len(ns),
+        ]
+        for box, fps in table["fps"].items():
+            lines.append(f"| {box} | " + " | ".join(f"{v:.0f}" for v in fps) + " |")
+    if "fast_path_rate" in meta:
+        lines += ["", f"Steps on the fast (windowed) path: {meta['fast_path_rate']}."]
+    return "\n".join(lines) + "\n"
+
+
+def main(args) -> dict:
+    frame, _ = make_frame()
+    repeats = 10 if args.quick else args.repeats
+    load_before = os.getloadavg()
+    results: dict = {}
+    for n in N_MAIN:
+        r = time_jax_step(n, BOX_WH, frame, repeats)
+        results[str(n)] = r
+        print(f"JAX   N={n:>7,}: {r['ms_per_frame']:7.2f} ms  {r['fps']:7.1f} frames/s", flush=True)
+    per_particle = None
+    for n in N_MAIN:
+        if n <= BASELINE_MAX_N:
+            ms = time_opencv(n, frame, repeats=3 if n >= 10_000 else 5)
+            per_particle = ms / n
+            print(f"OpenCV N={n:>7,}: {ms:8.1f} ms", flush=True)
+        else:
+            ms = per_particle * n
+        results[str(n)]["baseline_ms_per_frame"] = ms
+        results[str(n)]["baseline_scaled"] = n > BASELINE_MAX_N
+        results[str(n)]["speedup"] = ms / results[str(n)]["ms_per_frame"]
+    rate = {str(n): fast_path_rate(n, BOX_WH, frame) for n in N_MAIN}
+    if not args.quick:
+        table = {"n_particles": list(N_TABLE), "fps": {}, "ms_per_frame": {}}
+        for w, h in TABLE_BOXES:
+            fps, ms = [], []
+            for n in N_TABLE:
+                r = time_jax_step(n, (w, h), frame, max(10, repeats // 2))
+                fps.append(r["fps"])
+                ms.append(r["ms_per_frame"])
+            table["fps"][f"{w}x{h}"] = fps
+            table["ms_per_frame"][f"{w}x{h}"] = ms
+            print(f"table 3.2 {w}x{h}: " + " ".join(f"{v:.0f}" for v in fps), flush=True)
+        results["table_3_2"] = table
+    results["meta"] = {
+        "cpu": _cpu_name(),
+        "cores": os.cpu_count(),
+        "jax": jax.__version__,
+        "opencv": cv2.__version__,
+        "bins": list(H.DEFAULT_BINS),
+        "frame": f"{FRAME_W}x{FRAME_H}",
+        "box": f"{BOX_WH[0]}x{BOX_WH[1]}",
+        "window": {
+            str(n): list(H.suggest_window(BOX_WH, WINDOW_SPREAD, (FRAME_H, FRAME_W), n_particles=n))
+            for n in N_MAIN
+        },
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "load_before": [round(v, 2) for v in load_before],
+        "load_after": [round(v, 2) for v in os.getloadavg()],
+        "malloc_tuned": MALLOC_TUNED,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "repeats": repeats,
+        "timing": "median of repeats, jax.block_until_ready, 5 warm-up steps excluded",
+        "fast_path_rate": rate,
+        "command": "python " + " ".join(["experiments/bench_colour.py"] + sys.argv[1:]),
+    }
+    md = _markdown(results)
+    print(md)
+    if not args.quick or args.out:
+        stem = Path(args.out) if args.out else Path(__file__).parent / "results" / "bench_colour"
+        stem.parent.mkdir(parents=True, exist_ok=True)
+        stem.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
+        stem.with_suffix(".md").write_text(md)
+    return results
+
+
+if __name__ == "__main__":
+    main(ARGS)
