@@ -62,13 +62,34 @@ def _hsv_u8_channels(rgb: Array) -> tuple[Array, Array, Array]:
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
     v = jnp.maximum(jnp.maximum(r, g), b)
     diff = v - jnp.minimum(jnp.minimum(r, g), b)
-    s = (diff * jnp.asarray(_SDIV)[v] + _HALF) >> _HSV_SHIFT
+    # OpenCV's reciprocal tables round((255 << 12) / v) and round((180 << 12) / (6 diff)),
+    # computed arithmetically: float32 division then rounding reproduces every table
+    # entry (checked once below, and exhaustively by the tests), and vectorises
+    # where a table look-up (gather) does not.
+    s = (diff * _reciprocal(v, 255 << _HSV_SHIFT) + _HALF) >> _HSV_SHIFT
     # Same branch order as OpenCV: red wins ties with green, green wins ties with blue.
     h = jnp.where(v == r, g - b, jnp.where(v == g, b - r + 2 * diff, r - g + 4 * diff))
     # Arithmetic right shift = floor division, as in C++ for negative h.
-    h = (h * jnp.asarray(_HDIV180)[diff] + _HALF) >> _HSV_SHIFT
+    h = (h * _reciprocal(diff, (180 << _HSV_SHIFT) // 6) + _HALF) >> _HSV_SHIFT
     h = jnp.where(h < 0, h + 180, h)
     return h, s, v
+
+
+def _reciprocal(x: Array, numerator: int) -> Array:
+    """``round(numerator / x)`` as int32 for ``x`` in 1..255, 0 for ``x == 0``."""
+    pos = x > 0
+    q = jnp.float32(numerator) / jnp.where(pos, x, 1).astype(jnp.float32)
+    return jnp.where(pos, jnp.round(q).astype(jnp.int32), 0)
+
+
+def _check_reciprocals() -> None:
+    i = np.arange(1, 256, dtype=np.float32)
+    for numerator, table in ((255 << _HSV_SHIFT, _SDIV), ((180 << _HSV_SHIFT) // 6, _HDIV180)):
+        q = np.rint(np.float32(numerator) / i).astype(np.int32)
+        assert (q == table[1:]).all(), "float32 reciprocal differs from OpenCV's table"
+
+
+_check_reciprocals()
 
 
 def hs_bin_luts(h_bins: int, s_bins: int) -> tuple[np.ndarray, np.ndarray]:
@@ -92,9 +113,21 @@ def hs_bin_index(colour: Array, h_bins: int, s_bins: int) -> Array:
     ``h_bins`` and ``s_bins`` are static.
     """
     h, s, _ = _hsv_u8_channels(colour)
-    h_lut, s_lut = hs_bin_luts(h_bins, s_bins)
-    # One fused table: bin of (H, S) = h_lut[H] * s_bins + s_lut[S]. H < 180 always.
-    return jnp.asarray(h_lut * s_bins)[h] + jnp.asarray(s_lut)[s]
+    return _lut_or_formula(h, hs_bin_luts(h_bins, s_bins)[0], h_bins, 180) * s_bins + (
+        _lut_or_formula(s, hs_bin_luts(h_bins, s_bins)[1], s_bins, 256)
+    )
+
+
+def _lut_or_formula(x: Array, lut: np.ndarray, bins: int, span: int) -> Array:
+    """``lut[x]``, computed as ``x * bins // span`` when that equals OpenCV's table.
+
+    The integer formula (a multiply and a shift or constant division) is much
+    cheaper than a gather; for bin counts where float64 rounding makes OpenCV's
+    table differ from it (e.g. 26 hue bins), the table is used.
+    """
+    if (np.arange(len(lut)) * bins // span == lut).all():
+        return x * bins // span
+    return jnp.asarray(lut)[x]
 
 
 def rgb_to_hsv_float(colour: Array) -> Array:
