@@ -28,7 +28,8 @@ def test_iou_matches_numpy_and_transforms():
     ref = np.array([_np_iou(x, y) for x, y in zip(a, b, strict=True)])
     for f in (B.iou, jax.jit(B.iou), jax.vmap(B.iou)):
         np.testing.assert_allclose(np.asarray(f(a, b)), ref, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(B.iou(a[:50], b[:50]))[a[:50, 2] * a[:50, 3] > 0], 1.0, atol=1e-5)
+    same = np.asarray(B.iou(a[:50], b[:50]))
+    np.testing.assert_allclose(same[a[:50, 2] * a[:50, 3] > 0], 1.0, atol=1e-5)
 
 
 def test_iou_empty_boxes_are_zero_not_nan():

@@ -1,0 +1,419 @@
+"""Colour layer: a box particle filter with an H-S histogram likelihood (thesis ch. 3, SPEC C1).
+
+Usage::
+
+    config = ColourConfig(n_particles=100)
+    filt = build_colour_filter(config)
+    params = default_colour_params()
+    state = filt.init(params, key, frame, box_xywh)
+    state, info = filt.step(params, key, state, frame)
+    # or a whole sequence as one lax.scan:
+    states, infos = track(filt, params, key, frames, box_xywh)
+
+One frame (``step``):
+
+1. propagate every particle with the motion model (``cpf_jax.dynamics``);
+2. keep sizes in ``[min_size, frame size]`` and centres inside the frame;
+3. the exact H-S histogram of every particle's box and its Bhattacharyya
+   distance ``d`` to the reference histogram (thesis eq. 3.7);
+4. log-likelihood ``-d^2 / (2 sigma^2)`` (thesis eq. 3.8 in log form; the
+   constant ``1/(sqrt(2 pi) sigma)`` cancels on normalisation);
+5. estimate (weighted mean, MAP or robust mean), ESS, lost flag;
+6. optional slow template update from the estimate's histogram;
+7. resampling when ``ESS < ess_threshold * N`` (``ess_threshold = 1``: every
+   frame, the SIR filter of thesis 2.1).
+
+Why ``sigma = 0.1`` and not the thesis's 1: Bhattacharyya distances of
+plausible boxes lie in roughly ``[0.1, 0.6]``; with ``sigma = 1`` the weights
+``exp(-d^2/2)`` span only ``[0.84, 0.995]``, a near-flat likelihood that lets
+the cloud drift with the noise. With ``sigma = 0.1`` a box 0.1 further from the
+template loses a factor of about ``e^-1.5 .. e^-5``: sharp enough to select,
+wide enough that the ESS does not collapse to one particle. The sweep in
+``experiments/colour_tables.py`` (``sigma_sweep``) measures it.
+
+Lost target (documented recovery): when even the best particle's distance
+exceeds ``params.lost_distance`` the frame is flagged ``lost``; on lost frames a
+share ``config.recovery_fraction`` of the particles is re-drawn uniformly over
+the frame (the automatic (re)initialisation of thesis 3.5) so the filter can
+find the person again, and the template is not updated. If every log-weight is
+invalid (NaN/-inf), the weights fall back to uniform (``info.weights_invalid``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from cpf_jax.dynamics import DEFAULT_TAU, MODELS, MotionParams, default_motion_params, propagate
+from cpf_jax.kernels import boxes as box_ops
+from cpf_jax.kernels import resample as rs
+from cpf_jax.kernels.color import hs_bin_index
+from cpf_jax.kernels.histogram import (
+    DEFAULT_BINS,
+    bhattacharyya,
+    box_histograms,
+    rect_reduce,
+    suggest_window,
+)
+from cpf_jax.types import Filter, Frame
+
+__all__ = [
+    "ColourConfig",
+    "ColourParams",
+    "ColourState",
+    "ColourInfo",
+    "PARAM_CONSTRAINTS",
+    "build_colour_filter",
+    "default_colour_params",
+    "reference_histogram",
+    "track",
+]
+
+ESTIMATORS = ("mean", "map", "robust")
+
+
+@dataclasses.dataclass(frozen=True)
+class ColourConfig:
+    """Static, hashable settings (changing one recompiles)."""
+
+    n_particles: int = 100
+    bins: tuple[int, int] = DEFAULT_BINS
+    model: str = "ar1"  # one of cpf_jax.dynamics.MODELS
+    hierarchical: bool = True
+    estimator: str = "mean"  # "mean" | "map" | "robust"
+    resampler: str = "systematic"  # key of cpf_jax.kernels.resample.SCHEMES
+    ess_threshold: float = 1.0  # resample when ESS < threshold * N (1.0: every frame)
+    template_update: bool = False
+    recovery_fraction: float = 0.1  # share of particles re-drawn over the frame when lost
+    min_size: float = 8.0  # px, smallest box side a particle may take
+    init_spread: float = 0.0  # px, std of the initial cloud around the initial box
+    # Static (h, w) window of the fast exact histogram path (None: whole-frame
+    # tables, slower). ``with_window`` picks one from the initial box.
+    window: tuple[int, int] | None = None
+    # Surround ring of the colour-contrast model: the initial box grown by this
+    # fraction of its size on every side.
+    surround_margin: float = 0.25
+    # Horizontal stripes of the box with one histogram each (multi-part colour
+    # model, Perez et al. 2002); 1 is the thesis's single histogram.
+    parts: int = 2
+
+    def __post_init__(self) -> None:
+        if self.n_particles < 1:
+            raise ValueError(f"n_particles must be >= 1, got {self.n_particles}")
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        if self.resampler not in rs.SCHEMES:
+            names = tuple(rs.SCHEMES)
+            raise ValueError(f"resampler must be one of {names}, got {self.resampler!r}")
+        if self.parts < 1:
+            raise ValueError(f"parts must be >= 1, got {self.parts}")
+        if min(self.bins) < 1:
+            raise ValueError(f"bins must be positive, got {self.bins}")
+
+    @property
+    def n_bins(self) -> int:
+        return self.bins[0] * self.bins[1]
+
+    def with_window(
+        self, box_wh: tuple[float, float], frame_hw: tuple[int, int], growth: float = 1.5
+    ) -> ColourConfig:
+        """This config with a histogram window sized for a box of ``box_wh`` in a frame.
+
+        The window covers the box grown by ``growth`` plus the particle cloud
+        (8 standard deviations of ``tau_x = 10`` px). A cloud that outgrows it
+        (a person walking close, a lost target's global search) still gets
+        exact distances through the kernel's whole-frame fallback, only slower.
+        """
+        w, h = (float(v) * growth for v in box_wh)
+        window = suggest_window((w, h), 10.0, (int(frame_hw[0]), int(frame_hw[1])))
+        return dataclasses.replace(self, window=window)
+
+
+class ColourParams(NamedTuple):
+    """Continuous parameters (a pytree; future tuning targets, see PARAM_CONSTRAINTS)."""
+
+    sigma: Array  # likelihood width on the Bhattacharyya distance
+    contrast_weight: Array  # beta of the colour-contrast term (0: the thesis's likelihood only)
+    tau: Array  # [8] noise scales of the motion model (thesis 3.13)
+    motion: MotionParams  # hierarchical-sampling shape
+    template_rate: Array  # forgetting rate of the optional template update, in [0, 1]
+    template_max_distance: Array  # update only when the estimate's distance is below this
+    lost_distance: Array  # best-particle distance above which the target counts as lost
+    robust_radius: Array  # robust mean: window half-size as a fraction of the MAP box size
+
+
+# How each parameter is constrained when tuned by gradient (dynamax-style):
+# the tuner optimises an unconstrained value u and maps it with this bijector.
+PARAM_CONSTRAINTS = ColourParams(
+    sigma="softplus",
+    contrast_weight="softplus",
+    tau="softplus",
+    motion=MotionParams("sigmoid", "softplus", "softplus", "softplus", "softplus"),
+    template_rate="sigmoid",
+    template_max_distance="sigmoid",
+    lost_distance="sigmoid",
+    robust_radius="softplus",
+)
+
+
+def default_colour_params() -> ColourParams:
+    f = jnp.float32
+    return ColourParams(
+        sigma=f(0.1),
+        contrast_weight=f(10.0),
+        tau=jnp.asarray(DEFAULT_TAU, jnp.float32),
+        motion=default_motion_params(),
+        template_rate=f(0.05),
+        template_max_distance=f(0.3),
+        lost_distance=f(0.7),
+        robust_radius=f(0.25),
+    )
+
+
+class ColourState(NamedTuple):
+    particles: Array  # [N, 8] (cx, cy, vx, vy, w, h, vw, vh)
+    previous: Array  # [N, 8] each particle's state one frame earlier (second-order models)
+    log_weights: Array  # [N] normalised
+    reference: Array  # [K, B] normalised reference histogram of each of the K parts
+    contrast: Array  # [B] per-bin contrast weight P(object | bin) - 1/2
+    estimate: Array  # [4] xywh
+    lost: Array  # bool
+
+
+class ColourInfo(NamedTuple):
+    estimate: Array  # [4] xywh
+    ess: Array  # effective sample size before resampling
+    log_likelihood: Array  # log mean likelihood of the propagated particles
+    best_distance: Array  # smallest Bhattacharyya distance among particles
+    estimate_distance: Array  # distance of the estimate's box
+    lost: Array  # bool
+    resampled: Array  # bool
+    weights_invalid: Array  # bool, every log-weight was NaN/-inf
+
+
+def box_parts(boxes_xywh: Array, parts: int) -> Array:
+    """Split ``[..., 4]`` xywh boxes into ``parts`` horizontal stripes -> ``[..., parts, 4]``.
+
+    Stripe edges are shared, so after corner rounding the stripes' pixels
+    partition the box's pixels exactly.
+    """
+    b = jnp.asarray(boxes_xywh, jnp.float32)[..., None, :]
+    k = jnp.arange(parts, dtype=jnp.float32)
+    y = b[..., 1] + b[..., 3] * k / parts
+    h = jnp.broadcast_to(b[..., 3] / parts, y.shape)
+    x = jnp.broadcast_to(b[..., 0], y.shape)
+    w = jnp.broadcast_to(b[..., 2], y.shape)
+    return jnp.stack([x, y, w, h], axis=-1)
+
+
+def _normalise(h: Array) -> Array:
+    return h / jnp.maximum(jnp.sum(h, axis=-1, keepdims=True), 1.0)
+
+
+def reference_histogram(
+    frame: Frame, box_xywh: Array, bins: tuple[int, int] = DEFAULT_BINS, parts: int = 1
+) -> Array:
+    """Normalised H-S histograms ``[parts, B]`` of the stripes of an ``(x, y, w, h)`` box."""
+    idx = hs_bin_index(frame.colour, *bins)
+    rects = box_ops.xywh_to_rect(box_parts(box_xywh, parts))
+    return _normalise(box_histograms(idx, rects, bins[0] * bins[1]))
+
+
+def contrast_weights(
+    frame: Frame, box_xywh: Array, bins: tuple[int, int] = DEFAULT_BINS, margin: float = 0.25
+) -> Array:
+    """Per-bin contrast weights ``[B] = P(object | bin) - 1/2`` from a box and its surround.
+
+    ``P(object | b) = (n_in(b) + 1) / (n_in(b) + n_ring(b) + 2)`` with pixel counts
+    inside the box and in the ring around it (the box grown by ``margin`` of its
+    size per side, minus the box), as in distractor-aware colour tracking
+    (Possegger et al., CVPR 2015). Bins seen only on the person score ``~ +1/2``,
+    bins of the surrounding background ``~ -1/2``, unseen bins 0.
+    """
+    idx = hs_bin_index(frame.colour, *bins)
+    box = jnp.asarray(box_xywh, jnp.float32)
+    grow = jnp.array([-margin, -margin, 2 * margin, 2 * margin], jnp.float32)
+    grown = box + grow * box[jnp.array([2, 3, 2, 3])]
+    rects = box_ops.xywh_to_rect(jnp.stack([box, grown]))
+    h = box_histograms(idx, rects, bins[0] * bins[1])
+    inside, ring = h[0], jnp.maximum(h[1] - h[0], 0.0)
+    return (inside + 1.0) / (inside + ring + 2.0) - 0.5
+
+
+def _to_xywh(particles: Array) -> Array:
+    return box_ops.cxcywh_to_xywh(particles[..., jnp.array([0, 1, 4, 5])])
+
+
+def _estimate(config: ColourConfig, particles: Array, lw: Array, robust_radius: Array) -> Array:
+    """State estimate ``[8]`` from normalised log-weights (thesis 3.10 and the two alternatives)."""
+    w = jnp.exp(lw)
+    mean = w @ particles
+    if config.estimator == "mean":
+        return mean
+    best = particles[jnp.argmax(lw)]
+    if config.estimator == "map":
+        return best
+    # robust mean: weighted mean of the particles whose centre lies within a
+    # window around the MAP particle (thesis 3.1, [114]).
+    half = robust_radius * best[4:6]
+    near = jnp.all(jnp.abs(particles[:, :2] - best[:2]) <= half, axis=-1)
+    wn = jnp.where(near, w, 0.0)
+    total = jnp.sum(wn)
+    return jnp.where(total > 0, (wn @ particles) / jnp.where(total > 0, total, 1.0), best)
+
+
+def build_colour_filter(config: ColourConfig) -> Filter:
+    """Return the colour-layer ``Filter(init, step)`` for a static ``config``."""
+    n = config.n_particles
+    n_bins = config.n_bins
+    resampler = rs.SCHEMES[config.resampler]
+
+    def clamp(particles: Array, width: int, height: int) -> Array:
+        w = jnp.clip(particles[:, 4], config.min_size, width)
+        h = jnp.clip(particles[:, 5], config.min_size, height)
+        cx = jnp.clip(particles[:, 0], 0.0, width)
+        cy = jnp.clip(particles[:, 1], 0.0, height)
+        return particles.at[:, 0].set(cx).at[:, 1].set(cy).at[:, 4].set(w).at[:, 5].set(h)
+
+    def init(params: ColourParams, key: Array, frame: Frame, box_xywh: Array) -> ColourState:
+        box = jnp.asarray(box_xywh, jnp.float32)
+        height, width = frame.colour.shape[:2]
+        ref = reference_histogram(frame, box, config.bins, config.parts)
+        contrast = contrast_weights(frame, box, config.bins, config.surround_margin)
+        c = box_ops.xywh_to_cxcywh(box)
+        one = jnp.array([c[0], c[1], 0.0, 0.0, c[2], c[3], 0.0, 0.0], jnp.float32)
+        particles = jnp.tile(one, (n, 1))
+        if config.init_spread > 0:
+            jitter = jax.random.normal(key, (n, 2)) * config.init_spread
+            particles = particles.at[:, :2].add(jitter)
+        particles = clamp(particles, width, height)
+        return ColourState(
+            particles=particles,
+            previous=particles,
+            log_weights=jnp.full((n,), -jnp.log(jnp.float32(n))),
+            reference=ref,
+            contrast=contrast,
+            estimate=box,
+            lost=jnp.array(False),
+        )
+
+    def step(
+        params: ColourParams, key: Array, state: ColourState, frame: Frame
+    ) -> tuple[ColourState, ColourInfo]:
+        height, width = frame.colour.shape[:2]
+        k_prop, k_rec, k_res = jax.random.split(key, 3)
+        particles = propagate(
+            k_prop,
+            state.particles,
+            state.previous,
+            params.tau,
+            params.motion,
+            model=config.model,
+            hierarchical=config.hierarchical,
+        )
+        if config.recovery_fraction > 0:
+            # On a lost target, re-draw some particles uniformly over the frame.
+            k1, k2 = jax.random.split(k_rec)
+            redraw = jax.random.uniform(k1, (n,)) < config.recovery_fraction
+            centres = jax.random.uniform(k2, (n, 2)) * jnp.array([width, height], jnp.float32)
+            fresh = particles.at[:, :2].set(centres).at[:, 2:4].set(0.0)
+            particles = jnp.where((redraw & state.lost)[:, None], fresh, particles)
+        particles = clamp(particles, width, height)
+
+        bin_idx = hs_bin_index(frame.colour, *config.bins)
+        sqrt_q = jnp.sqrt(state.reference)  # [K, B]
+        # Normalise the contrast score by the previous estimate's area, so that
+        # its scale does not change as the person comes closer.
+        area = jnp.maximum(state.estimate[2] * state.estimate[3], 1.0)
+
+        def distance_and_contrast(counts: Array) -> Array:
+            # counts [c, K, B] -> [c, 2]: mean squared part distance, contrast score
+            total = jnp.sum(counts, axis=-1)
+            norm = jax.lax.rsqrt(jnp.maximum(total, 1.0))
+            bc = jnp.sum(jnp.sqrt(counts) * sqrt_q, axis=-1) * norm
+            d2 = jnp.where(total > 0, jnp.clip(1.0 - bc, 0.0, 1.0), 1.0)
+            score = jnp.sum(counts, axis=-2) @ state.contrast / area
+            return jnp.stack([jnp.mean(d2, axis=-1), score], axis=-1)
+
+        rects = box_ops.xywh_to_rect(box_parts(_to_xywh(particles), config.parts))
+        out = rect_reduce(
+            bin_idx, rects, distance_and_contrast, n_bins=n_bins, window=config.window
+        )
+        d2, score = out[:, 0], out[:, 1]
+        d = jnp.sqrt(d2)
+        log_lik = -d2 / (2.0 * params.sigma * params.sigma) + params.contrast_weight * score
+        log_lik = jnp.where(jnp.isfinite(log_lik), log_lik, -jnp.inf)
+        invalid = rs.all_weights_invalid(state.log_weights + log_lik)
+        lw = rs.normalise_log_weights(state.log_weights + log_lik)
+        ess = rs.effective_sample_size(lw)
+        # log mean likelihood (incremental evidence) under the previous weights.
+        log_evidence = jax.nn.logsumexp(state.log_weights + jnp.where(invalid, 0.0, log_lik))
+
+        est = _estimate(config, particles, lw, params.robust_radius)
+        est_xywh = _to_xywh(est)
+        est_rects = box_ops.xywh_to_rect(box_parts(est_xywh, config.parts))
+        est_hist = _normalise(box_histograms(bin_idx, est_rects, n_bins))  # [K, B]
+        est_d = jnp.sqrt(jnp.mean(bhattacharyya(est_hist, state.reference) ** 2))
+        best_d = jnp.min(jnp.where(jnp.isfinite(d), d, 1.0))
+        lost = (best_d > params.lost_distance) | invalid
+
+        reference = state.reference
+        if config.template_update:
+            ok = (~lost) & (est_d < params.template_max_distance)
+            rate = jnp.where(ok, params.template_rate, 0.0)
+            reference = (1.0 - rate) * reference + rate * est_hist
+            reference = _normalise(reference)
+
+        (particles, previous), lw, resampled = rs.resample_if(
+            k_res, lw, (particles, state.particles), config.ess_threshold, resampler
+        )
+        new_state = ColourState(particles, previous, lw, reference, state.contrast, est_xywh, lost)
+        info = ColourInfo(
+            estimate=est_xywh,
+            ess=ess,
+            log_likelihood=log_evidence,
+            best_distance=best_d,
+            estimate_distance=est_d,
+            lost=lost,
+            resampled=resampled,
+            weights_invalid=invalid,
+        )
+        return new_state, info
+
+    return Filter(init=init, step=step)
+
+
+def track(filt: Filter, params, key: Array, frames: Frame, box_xywh: Array):
+    """Run a filter over a whole sequence as one ``lax.scan``.
+
+    frames: ``Frame`` with leading time axis ``[T, ...]``; the filter is
+    initialised on ``frames[0]`` with ``box_xywh`` and stepped on frames
+    ``1..T-1``. Returns ``(final_state, infos)`` where ``infos`` has a leading
+    axis ``T - 1``; ``estimates(box, infos)`` gives the ``[T, 4]`` track.
+    Works under ``jit`` and ``vmap`` (over keys, params or sequences).
+    """
+    k_init, k_run = jax.random.split(key)
+    first = jax.tree_util.tree_map(lambda x: x[0], frames)
+    rest = jax.tree_util.tree_map(lambda x: x[1:], frames)
+    state = filt.init(params, k_init, first, box_xywh)
+    t = jax.tree_util.tree_leaves(rest)[0].shape[0]
+    keys = jax.random.split(k_run, t)
+
+    def body(s, xs):
+        k, f = xs
+        return filt.step(params, k, s, f)
+
+    return jax.lax.scan(body, state, (keys, rest))
+
+
+def track_boxes(filt: Filter, params, key: Array, frames: Frame, box_xywh: Array) -> Array:
+    """``[T, 4]`` xywh track: the initial box followed by every step's estimate."""
+    _, infos = track(filt, params, key, frames, box_xywh)
+    box = jnp.asarray(box_xywh, jnp.float32)[None]
+    return jnp.concatenate([box, infos.estimate], axis=0)

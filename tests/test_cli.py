@@ -1,0 +1,105 @@
+"""cpf-track end to end: a generated recorded folder, outputs written as the run goes, bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from cpf_jax.cli import main, parse_box
+from cpf_jax.io import read_results
+from cpf_jax.synthetic import make_sequence, to_folder
+
+N_FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory) -> Path:
+    seq = make_sequence("walk_across_slow", seed=3, n_frames=N_FRAMES)
+    return Path(to_folder(seq, tmp_path_factory.mktemp("seq") / "walk"))
+
+
+def test_tracks_folder_writes_csv_rrd_and_summary(folder, tmp_path, capsys):
+    out, rrd = tmp_path / "boxes.csv", tmp_path / "run.rrd"
+    code = main([str(folder), "--particles", "64", "--out", str(out), "--rrd", str(rrd),
+                 "--no-progress"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "SR@0.5 %" in printed and f"tracked {N_FRAMES} frames" in printed
+    res = read_results(out)
+    np.testing.assert_array_equal(res["frame"], np.arange(N_FRAMES))
+    boxes = res["boxes"]
+    assert np.isfinite(boxes).all()
+    gt = np.loadtxt(folder / "groundtruth_rect.txt", delimiter=",")
+    np.testing.assert_allclose(boxes[0], gt[0] - [1, 1, 0, 0], atol=1e-3)  # 0-based init box
+    # the run tracks: estimates stay on the person (a generous bound; accuracy is tested elsewhere)
+    centre = boxes[:, :2] + boxes[:, 2:] / 2
+    gt_centre = gt[:, :2] - 1 + gt[:, 2:] / 2
+    assert np.median(np.linalg.norm(centre - gt_centre, axis=1)) < 25
+    assert rrd.stat().st_size > 10_000
+    from rerun.chunk import RrdReader
+
+    paths = {str(ch.entity_path) for ch in RrdReader(str(rrd)).stream()}
+    assert any("tracker/box" in p for p in paths) and any("series/ess" in p for p in paths)
+
+
+def test_init_override_and_max_frames(folder, tmp_path):
+    out = tmp_path / "b.csv"
+    code = main([str(folder), "--init", "100,80,60,190", "--max-frames", "3", "--out", str(out),
+                 "--particles", "64", "--no-progress"])
+    assert code == 0
+    res = read_results(out)
+    assert len(res["frame"]) == 3
+    np.testing.assert_allclose(res["boxes"][0], [100, 80, 60, 190])
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["/nonexistent/cpf_dir"], "nonexistent"),
+        (["{folder}", "--init", "900,900,50,50"], "outside"),
+        (["{folder}", "--init", "1,2,3"], "--init"),
+        (["{folder}", "--particles", "0"], "--particles"),
+        (["{folder}", "--bins", "8by8"], "--bins"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(folder, capsys, args, needle):
+    argv = [a.format(folder=folder) for a in args] + ["--no-progress"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cpf-track: error:") and needle in err
+    assert len(err.splitlines()) == 1
+
+
+def test_corrupt_image_names_the_file(folder, tmp_path, capsys):
+    bad = tmp_path / "bad"
+    (bad / "rgb").mkdir(parents=True)
+    for i, f in enumerate(sorted((folder / "rgb").iterdir())[:4]):
+        (bad / "rgb" / f.name).write_bytes(f.read_bytes() if i != 2 else b"not a png")
+    assert main([str(bad), "--init", "100,80,60,190", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "000002.png" in err and len(err.strip().splitlines()) == 1
+
+
+def test_otb_style_folder_with_invisible_frames(tmp_path, capsys):
+    """OTB layout: 1-based GT, 0,0,0,0 lines skipped; tracking starts at the first visible frame."""
+    seq = make_sequence("walk_across_slow", seed=4, n_frames=8)
+    (tmp_path / "img").mkdir()
+    lines = []
+    for t in range(8):
+        cv2.imwrite(str(tmp_path / "img" / f"{t + 1:04d}.jpg"),
+                    cv2.cvtColor(seq.colour[t], cv2.COLOR_RGB2BGR))
+        x, y, w, h = seq.boxes[t]
+        lines.append("0,0,0,0" if t < 2 else f"{x + 1:.0f},{y + 1:.0f},{w:.0f},{h:.0f}")
+    (tmp_path / "groundtruth_rect.txt").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "o.csv"
+    assert main([str(tmp_path), "--out", str(out), "--particles", "64", "--no-progress"]) == 0
+    res = read_results(out)
+    np.testing.assert_array_equal(res["frame"], np.arange(2, 8))
+    assert "visible" in capsys.readouterr().out
+
+
+def test_parse_box():
+    np.testing.assert_allclose(parse_box("1, 2,3.5,4"), [1, 2, 3.5, 4])
