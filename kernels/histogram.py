@@ -272,6 +272,40 @@ def _chunked(fn, rects: Array, chunk: int | None):
     return jnp.concatenate([main, fn(rects[n_main:])], axis=0)
 
 
+def _split_grid(shape: tuple[int, int]) -> tuple[int, int]:
+    """Fewest pieces ``(ky, kx)`` that cut any rect inside ``shape`` into parts of < 65,536 px.
+
+    A rect of height ``h <= shape[0]`` cut into ``ky`` near-equal rows has rows
+    of at most ``ceil(shape[0] / ky)`` pixels, likewise for columns.
+    """
+    h, w = shape
+    best = (h, w)  # one-pixel pieces always fit
+    for ky in range(1, h + 1):
+        ph = -(-h // ky)
+        max_w = (_U16_LIMIT - 1) // ph  # widest piece of height ph that fits
+        if max_w >= 1:
+            kx = -(-w // max_w)
+            if ky * kx < best[0] * best[1]:
+                best = (ky, kx)
+        if ky >= best[0] * best[1]:
+            break
+    return best
+
+
+def _pieces(rects: Array, ky: int, kx: int) -> Array:
+    """``rects [..., 4]`` -> ``[..., ky * kx, 4]`` near-equal pieces tiling each rect."""
+    if ky == kx == 1:
+        return rects[..., None, :]
+    x0, y0, x1, y1 = (rects[..., i : i + 1] for i in range(4))
+    xs = x0 + ((x1 - x0) * jnp.arange(kx + 1)) // kx
+    ys = y0 + ((y1 - y0) * jnp.arange(ky + 1)) // ky
+    px0 = jnp.tile(xs[..., :-1], (1,) * (rects.ndim - 1) + (ky,))
+    px1 = jnp.tile(xs[..., 1:], (1,) * (rects.ndim - 1) + (ky,))
+    py0 = jnp.repeat(ys[..., :-1], kx, axis=-1)
+    py1 = jnp.repeat(ys[..., 1:], kx, axis=-1)
+    return jnp.stack([px0, py0, px1, py1], axis=-1)
+
+
 def _window_counts(
     bins: Array,
     rects: Array,
@@ -281,15 +315,16 @@ def _window_counts(
     n_bins: int,
     dtype,
     chunk: int | None,
-    bounds: Array | None = None,
+    pieces: tuple[int, int] = (1, 1),
     reduce_fn=None,
 ) -> Array:
-    """Exact counts ``[N, *C, n_bins] float32`` of ``rects`` ∩ window (∩ ``bounds``).
+    """Exact counts ``[N, *C, n_bins] float32`` of ``rects`` ∩ window, or ``reduce_fn`` of them.
 
     ``rects`` are clipped frame rects; ``origin = (oy, ox)`` places the static
-    ``shape = (h, w)`` window (inside the frame); ``bounds = (x0, y0, x1, y1)``
-    optionally restricts the counted region further. ``reduce_fn``, if given,
-    is applied to the counts chunk by chunk (its result is returned instead).
+    ``shape = (h, w)`` window (inside the frame). Each rect is cut into
+    ``pieces = (ky, kx)`` parts, counted separately and summed (so that a
+    uint16 table stays exact for rects of 65,536 pixels or more).
+    ``reduce_fn`` is applied to the counts chunk by chunk.
     """
     h, w = shape
     oy, ox = origin[0], origin[1]
@@ -297,55 +332,27 @@ def _window_counts(
     table = table.reshape(-1, n_bins)
     lo = jnp.stack([ox, oy, ox, oy])
     hi = lo + jnp.asarray([w, h, w, h], jnp.int32)
-    if bounds is not None:
-        lo = jnp.maximum(lo, jnp.concatenate([bounds[:2], bounds[:2]]))
-        hi = jnp.minimum(hi, jnp.concatenate([bounds[2:], bounds[2:]]))
     # Clamping both corners into the same interval keeps x0 <= x1: empty stays empty.
-    local = jnp.clip(rects, lo, hi) - jnp.stack([ox, oy, ox, oy])
-    idx = _corner_index(local, w + 1)
+    local = jnp.clip(rects, lo, hi) - lo
+    idx = _corner_index(_pieces(local, *pieces), w + 1)
     reduce_fn = reduce_fn or (lambda counts: counts)
-    return _chunked(lambda i: reduce_fn(_corner_counts(table, i)), idx, chunk)
+    return _chunked(lambda i: reduce_fn(jnp.sum(_corner_counts(table, i), axis=-2)), idx, chunk)
 
 
-def _tiles(frame_shape: tuple[int, int], max_shape: tuple[int, int]) -> tuple[tuple, tuple]:
-    """Static tiling of the frame for the exact fallback.
-
-    Returns the tile shape ``(th, tw)`` (``th * tw < 65,536`` so that uint16
-    counts are exact for any rect ∩ tile; no larger than ``max_shape``) and a
-    tuple of ``(oy, ox, x0, y0, x1, y1)``: each tile's origin (kept inside the
-    frame) and the disjoint part of the frame it is responsible for.
-    """
-    fh, fw = frame_shape
-    th = max(1, min(max_shape[0], fh, _U16_LIMIT - 1))
-    tw = max(1, min(max_shape[1], fw, (_U16_LIMIT - 1) // th))
-    tiles = []
-    for y0 in range(0, fh, th):
-        for x0 in range(0, fw, tw):
-            y1, x1 = min(y0 + th, fh), min(x0 + tw, fw)
-            tiles.append((min(y0, fh - th), min(x0, fw - tw), x0, y0, x1, y1))
-    return (th, tw), tuple(tiles)
-
-
-def _tiled_counts(
-    bins: Array, rects: Array, *, n_bins: int, tile_max: tuple[int, int], chunk: int | None
-) -> Array:
-    """Exact counts of any clipped rects: sum over a static tiling of the frame.
-
-    Memory stays that of one ``tile_max`` table (a ``fori_loop`` over tiles),
-    so this path can sit in a ``lax.cond`` branch next to the windowed path
-    without enlarging XLA's temporary arena.
-    """
-    shape, tiles = _tiles(bins.shape, tile_max)
-    tiles = jnp.asarray(tiles, jnp.int32)
-
-    def body(i, acc):
-        t = tiles[i]
-        return acc + _window_counts(
-            bins, rects, t[:2], shape, n_bins=n_bins, dtype=jnp.uint16, chunk=chunk, bounds=t[2:]
-        )
-
-    acc = jnp.zeros(rects.shape[:-1] + (n_bins,), jnp.float32)
-    return lax.fori_loop(0, tiles.shape[0], body, acc)
+def _frame_counts(bins: Array, rects: Array, *, n_bins: int, chunk: int | None, reduce_fn=None):
+    """Exact counts of any clipped rects from one full-frame uint16 table (pieces if needed)."""
+    fh, fw = bins.shape
+    return _window_counts(
+        bins,
+        rects,
+        jnp.zeros(2, jnp.int32),
+        (fh, fw),
+        n_bins=n_bins,
+        dtype=jnp.uint16,
+        chunk=chunk,
+        pieces=_split_grid((fh, fw)),
+        reduce_fn=reduce_fn,
+    )
 
 
 def rect_reduce(
@@ -378,12 +385,11 @@ def rect_reduce(
     single = rects.ndim == 1
     rects = clip_rect(rects[None] if single else rects, fw, fh)
 
-    def tiled(rects):
-        tile_max = (fh, fw) if window is None else window
-        return reduce_fn(_tiled_counts(bins, rects, n_bins=n_bins, tile_max=tile_max, chunk=chunk))
+    def general(rects):
+        return _frame_counts(bins, rects, n_bins=n_bins, chunk=chunk, reduce_fn=reduce_fn)
 
     if window is None:
-        out = tiled(rects)
+        out = general(rects)
     else:
         shape = (min(window[0], fh), min(window[1], fw))
         if origin is None:
@@ -404,7 +410,7 @@ def rect_reduce(
 
         if fallback:
             ok = window_covers(rects, origin, shape, count_dtype)
-            out = lax.cond(ok, fast, tiled, rects)
+            out = lax.cond(ok, fast, general, rects)
         else:
             out = fast(rects)
     return out[0] if single else out
