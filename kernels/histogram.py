@@ -17,52 +17,71 @@ Bhattacharyya distance (thesis eq. 3.7), on histograms normalised to sum 1::
 
     d = sqrt(1 - sum_i sqrt(p_i q_i))
 
-It is evaluated in the algebraically equal Hellinger form
-``sqrt(0.5 * sum_i (sqrt(p_i) - sqrt(q_i))^2)``, whose argument is a sum of
-squares: never negative (no clamp needed, no NaN) and accurate near ``d = 0``
-in float32, where ``1 - sum sqrt(pq)`` would cancel. An empty histogram (no
-counted pixel) gives ``d = 1`` by definition, as in OpenCV. This is what
-``cv2.compareHist(h1, h2, cv2.HISTCMP_BHATTACHARYYA)`` returns on unnormalised
-histograms (OpenCV normalises internally).
+``bhattacharyya`` evaluates it in the algebraically equal Hellinger form
+``sqrt(0.5 * sum_i (sqrt(p_i) - sqrt(q_i))^2)``: the argument is a sum of
+squares (never negative, no NaN) and accurate near ``d = 0`` in float32, and
+its gradients are finite. The per-rect kernels (``rect_distances``,
+``box_distances``) compute ``1 - BC`` with ``BC = sum sqrt(c_i) sqrt(q_i) /
+sqrt(sum c)`` from the exact counts ``c`` instead, clamped at 0 before the
+square root: two plain reductions that XLA fuses with the corner gathers (the
+Hellinger form costs twice as much there). Float32 cancellation bounds its
+error near ``d = 0`` to ``|d^2 - d_exact^2| < 2e-6`` (``|d - d_exact| < 2e-3``;
+a likelihood ``exp(-d^2 / 2 sigma^2)`` sees ``d^2``); tested against OpenCV.
+An empty histogram (no counted pixel, or an empty reference) gives ``d = 1``,
+as in OpenCV. ``cv2.compareHist(h1, h2, cv2.HISTCMP_BHATTACHARYYA)`` returns
+the same on unnormalised histograms (OpenCV normalises internally).
 
 Speed: integral histograms in a window (the design, and its trade-offs)
 ----------------------------------------------------------------------
 A particle filter evaluates N boxes of different sizes per frame. An integral
 histogram ``T[y, x, b]`` (count of bin ``b`` in ``[0, x) x [0, y)``) gives any
 rect's exact histogram from four corner rows: ``T[y1,x1] - T[y0,x1] - T[y1,x0]
-+ T[y0,x0]``. Building ``T`` is memory-bound (``(h+1)(w+1) n_bins`` entries),
-so the fast path (``window=(wh, ww)``):
++ T[y0,x0]``. Building ``T`` is memory-bound (``(h+1)(w+1) n_bins`` entries,
+each written and read twice), so the fast path (``window=(wh, ww)``):
 
 * builds ``T`` only over a window of **static** shape ``(wh, ww)`` whose
   origin is **dynamic**: placed (``lax.dynamic_slice``) so that it covers the
-  bounding rectangle of all non-empty clipped rects when that fits;
+  bounding rectangle of all non-empty clipped rects when that fits
+  (``window_origin``);
 * stores counts in ``uint16`` (half the bytes of int32). Wrap-around modular
   arithmetic makes the four-corner difference exact for every rect of fewer
   than 65,536 pixels, whatever the table's own values;
 * builds the prefix sums with in-place ``lax.fori_loop`` +
   ``lax.dynamic_update_slice`` (one column, then one row at a time), layout
   ``[y, x, bins]`` so that each corner is one contiguous row of ``n_bins``
-  counts (``jnp.cumsum`` lowers to a slow ``reduce_window`` on CPU, 10x slower);
-* gathers the corners in chunks of ``chunk`` rects (``lax.map`` with
-  ``batch_size``) to bound the ``[chunk, n_bins]`` temporaries.
+  counts (``jnp.cumsum`` / ``lax.scan`` / ``associative_scan`` were 2-10x
+  slower on CPU; unrolling the loops breaks the in-place update);
+* materialises the ``[N, 4]`` corner row indices once (otherwise XLA fuses the
+  index arithmetic into the gather and redoes it for each of the ``n_bins``
+  outputs), then gathers and reduces in sequential chunks of ``chunk`` rects
+  (default ``DEFAULT_CHUNK = 8192``) so that no ``[N, n_bins]`` block exists:
+  at N = 100k an unchunked one is 25.6 MB of fresh pages on every call.
 
 **Exactness is never traded away.** When some non-empty rect is not inside
 the window (the cloud is wider than the window) or has 65,536 pixels or more,
-``fallback=True`` (default) switches with ``lax.cond`` to the general path: a
-full-frame ``int32`` table, exact for everything, about 4x slower on a
-512x424 frame (on CPU only the branch taken runs; under ``vmap`` with a
-batched predicate ``lax.cond`` becomes a ``select`` and both branches run).
+``fallback=True`` (default) switches with ``lax.cond`` to the general path:
+one full-frame ``uint16`` table, each rect cut into the few near-equal pieces
+(``(1, 4)`` on 512 x 424) that keep every piece under 65,536 pixels, pieces
+summed. It is exact for any rect and costs about the full-frame table
+(~2x a typical window) plus 4x the gathers. Its buffers are no larger than the
+fast path's, so merely having the branch costs nothing (XLA sizes one
+temporary arena for both branches; a 68 MB branch made every call re-fault
+its pages). On CPU only the branch taken runs; under ``vmap`` with a batched
+predicate ``lax.cond`` becomes a ``select`` and both branches run.
 ``fallback=False`` skips the check and counts only the part of each rect
 inside the window: exact for rects inside the window (``window_covers``
-tells), wrong otherwise; for callers that guarantee coverage.
+tells), the intersection's histogram otherwise; for callers that guarantee
+coverage. ``window=None`` is the general path directly.
 
-The window should cover the largest box plus the extent of the particle cloud
-(``suggest_window``). The table costs ``2 (wh+1)(ww+1) n_bins`` bytes: with the
-default 8x8 bins and a 320x288 window it is 11.8 MB and takes about 3.6 ms to
-build on the reference 2-core CPU; corner gathers cost about 0.05 ms per 1,000
-rects. 16x16 bins multiply the table (not the gathers) by 4, which is why the
-default is 8x8 (``DEFAULT_BINS``); 8x8 and 16x16 are different likelihoods,
-not approximations of each other.
+The window should cover the largest box plus the extent of the particle cloud:
+``suggest_window`` takes the expected range of N normal centres
+(``2 sqrt(2 ln N)`` standard deviations). The table costs
+``2 (wh+1)(ww+1) n_bins`` bytes: with the default 8x8 bins and a 400 x 352
+window it is 18 MB and takes about 5-7 ms to build on the reference 2-core
+CPU; corner gathers and the distance cost about 0.1 ms per 1,000 rects.
+16x16 bins multiply the table (not the gathers) by 4, which is why the default
+is 8x8 (``DEFAULT_BINS``); 8x8 and 16x16 are different likelihoods, not
+approximations of each other.
 
 When all particles share one integer rect size, ``shared_size_distance_map``
 computes the exact distance of that rect at every integer position of a
@@ -113,7 +132,7 @@ DEFAULT_CHUNK = 8192
 
 #: Up to this many rects (static), ``box_histograms`` counts each rect by a
 #: masked scatter-add over the frame (about 0.4 ms per rect on 512 x 424)
-#: instead of building the tiled integral histogram (about 10 ms).
+#: instead of building the full-frame integral histogram (about 8 ms).
 SCATTER_MAX_RECTS = 16
 
 
@@ -371,10 +390,10 @@ def rect_reduce(
 
     The engine behind every path here: clips the rects, counts them with the
     windowed integral histogram (``window = (wh, ww)``, exact ``lax.cond``
-    fallback to the tiled path unless ``fallback=False``) or the tiled one
-    (``window=None``), and applies ``reduce_fn(counts [c, *C, n_bins] float32)
-    -> [c, *C, ...]`` (it must act row-wise) chunk by chunk on the windowed
-    path, so that the ``[N, *C, n_bins]`` counts never exist at once.
+    fallback to the general path unless ``fallback=False``) or the general
+    full-frame one (``window=None``), and applies ``reduce_fn(counts [c, *C,
+    n_bins] float32) -> [c, *C, ...]`` (it must act row-wise) chunk by chunk,
+    so that the ``[N, *C, n_bins]`` counts never exist at once.
     ``window``, ``n_bins``, ``count_dtype``, ``fallback``, ``chunk`` and
     ``reduce_fn`` are static; ``origin (oy, ox)`` is dynamic (default:
     ``window_origin`` of the rects). A custom ``reduce_fn`` lets a filter
@@ -440,7 +459,7 @@ def rect_histograms_fast(
     ``count_dtype``, ``fallback`` and ``chunk`` are static; ``origin`` ``(oy, ox)``
     is dynamic and defaults to ``window_origin`` of the rects. Meant for many
     rects at once, e.g. the ``k x k`` cells of every particle box
-    (``rects [N, k*k, 4]``). ``window=None`` is the general tiled path.
+    (``rects [N, k*k, 4]``). ``window=None`` is the general full-frame path.
     """
     return rect_reduce(
         bins,
@@ -479,9 +498,9 @@ def box_histograms(bins: Array, rects: Array, n_bins: int) -> Array:
     General, simple path for any rect list (clipped, empty, outside, larger
     than the frame). Up to ``SCATTER_MAX_RECTS`` rects (a static count) are
     counted by a masked scatter-add over the frame each; more rects use the
-    tiled path: the frame is cut into a few static tiles of fewer than 65,536
-    pixels, each tile's uint16 integral histogram answers the part of every
-    rect inside it, the parts are summed. ``n_bins`` is static.
+    general integral path: one full-frame uint16 integral histogram, each rect
+    cut into a few pieces of fewer than 65,536 pixels, the pieces' four-corner
+    counts summed. ``n_bins`` is static.
     """
     rects = jnp.asarray(rects, jnp.int32)
     n_rects = math.prod(rects.shape[:-1])

@@ -9,16 +9,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from cpf_jax.kernels import boxes as B
-from cpf_jax.kernels import color
-from cpf_jax.kernels import histogram as H
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cpf_jax.kernels import boxes as B
+from cpf_jax.kernels import color
+from cpf_jax.kernels import histogram as H
+
 HB, SB = H.DEFAULT_BINS
 NB = HB * SB
-FH, FW = 240, 320  # 76,800 px: the general path needs two uint16 tiles
-WINDOW = (96, 128)  # fast-path window used throughout; its fallback uses 9 overlapping tiles
+FH, FW = 240, 320  # 76,800 px: the general path cuts big rects into 2 uint16-safe pieces
+WINDOW = (96, 128)  # fast-path window used throughout
 
 
 # ----------------------------------------------------------------------------- references
@@ -133,12 +134,26 @@ def test_general_path_matches_calchist_on_edge_cases(frames):
     out = np.asarray(_general(bins[0], EDGE_RECTS))
     assert out.shape == (len(EDGE_RECTS), NB) and out.dtype == np.float32
     np.testing.assert_array_equal(out, ref)
-    # Many rects: the tiled integral histogram.
+    # Many rects: the full-frame integral histogram.
     many = np.concatenate([EDGE_RECTS, EDGE_RECTS + 3])
     assert len(many) > H.SCATTER_MAX_RECTS
     np.testing.assert_array_equal(np.asarray(_general(bins[0], many)), _ref_hists(hsvs[0], many))
-    tiled = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=None))
-    np.testing.assert_array_equal(np.asarray(tiled(bins[0], EDGE_RECTS)), ref)
+    general = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=None))
+    np.testing.assert_array_equal(np.asarray(general(bins[0], EDGE_RECTS)), ref)
+
+
+@pytest.mark.parametrize("shape", [(240, 320), (424, 512), (37, 53), (1080, 1920), (70000, 3)])
+def test_pieces_tile_any_rect_under_the_uint16_limit(shape):
+    ky, kx = H._split_grid(shape)
+    assert -(-shape[0] // ky) * -(-shape[1] // kx) < 65536
+    rects = np.array([[0, 0, shape[1], shape[0]], [1, 3, shape[1], shape[0] - 2], [2, 5, 2, 9]])
+    pieces = np.asarray(H._pieces(jnp.asarray(rects, jnp.int32), ky, kx))
+    assert pieces.shape == (3, ky * kx, 4)
+    area = (pieces[..., 2] - pieces[..., 0]) * (pieces[..., 3] - pieces[..., 1])
+    assert (area < 65536).all() and (area >= 0).all()
+    np.testing.assert_array_equal(
+        area.sum(-1), (rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1])
+    )
 
 
 def test_rect_reduce_with_custom_reduction(frames):
@@ -281,8 +296,8 @@ def test_cell_rects_and_explicit_origin(frames):
     np.testing.assert_array_equal(out.sum(axis=1), _ref_hists(hsvs[0], rects))
 
 
-def test_odd_frame_many_overlapping_tiles():
-    # 37 x 53 frame, 16 x 20 window: the fallback tiles overlap at the right and bottom.
+def test_odd_frame_small_window():
+    # 37 x 53 frame, 16 x 20 window: most random rects fall back to the general path.
     rng = np.random.default_rng(7)
     img = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
     hsv = _hsv(img)
