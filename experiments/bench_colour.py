@@ -1,7 +1,7 @@
 """Benchmark: one jitted colour-filter step vs a per-particle OpenCV loop.
 
-    python experiments/bench_colour.py                # full run, writes results/bench_colour.{json,md}
-    python experiments/bench_colour.py --quick        # fewer repeats, no table 3.2 (smoke test)
+    python experiments/bench_colour.py           # full run -> results/bench_colour.{json,md}
+    python experiments/bench_colour.py --quick   # few repeats, no table 3.2 (smoke test)
     python experiments/bench_colour.py --no-tune-malloc
 
 "Colour step" = what the colour filter does per frame on a 512 x 424 frame:
@@ -35,6 +35,17 @@ def _parse_args(argv=None):
     p.add_argument("--quick", action="store_true", help="few repeats, skip table 3.2")
     p.add_argument("--repeats", type=int, default=50, help="timed steps per setting")
     p.add_argument(
+        "--main-only",
+        action="store_true",
+        help="time the JAX step at N = 1k, 10k, 100k only; print JSON (used for the untuned run)",
+    )
+    p.add_argument(
+        "--no-compare-malloc",
+        dest="compare_malloc",
+        action="store_false",
+        help="skip re-running the main timings in a subprocess without tune_malloc",
+    )
+    p.add_argument(
         "--out", default=None, help="results path stem (default experiments/results/bench_colour)"
     )
     return p.parse_args(argv)
@@ -53,6 +64,7 @@ import datetime  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import platform  # noqa: E402
+import subprocess  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import NamedTuple  # noqa: E402
@@ -61,6 +73,7 @@ import cv2  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+
 from cpf_jax.kernels import boxes as B  # noqa: E402
 from cpf_jax.kernels import histogram as H  # noqa: E402
 
@@ -77,6 +90,7 @@ N_MAIN = (1_000, 10_000, 100_000)
 N_TABLE = (20, 40, 60, 80, 100, 120, 1_000, 10_000)
 TABLE_BOXES = ((100, 150), (150, 150), (150, 200), (150, 250))
 BASELINE_MAX_N = 10_000
+WARMUP = 20  # untimed steps before timing
 
 
 # ----------------------------------------------------------------------------- scene
@@ -223,8 +237,9 @@ def time_jax_step(n: int, box_wh, frame, repeats: int, bins=H.DEFAULT_BINS) -> d
     frame_j = jnp.asarray(frame)
     key = jax.random.key(0)
     particles = init_particles(key, n, xywh)
-    # Warm-up: compile and let the cloud settle onto the target (not timed).
-    for i in range(5):
+    # Warm-up: compile, let the cloud settle onto the target and the allocator
+    # reach its steady state (the first ~10 calls still grow the heap). Not timed.
+    for i in range(WARMUP):
         particles, _ = step(jax.random.fold_in(key, i), particles, frame_j, ref)
     jax.block_until_ready(particles)
     times = []
@@ -332,9 +347,28 @@ def _markdown(results: dict) -> str:
         ]
         for box, fps in table["fps"].items():
             lines.append(f"| {box} | " + " | ".join(f"{v:.0f}" for v in fps) + " |")
+    if meta.get("untuned_ms_per_frame"):
+        un = meta["untuned_ms_per_frame"]
+        lines += [
+            "",
+            "Same JAX step without `tune_malloc` (fresh process): "
+            + ", ".join(f"N={int(n):,} {v:.2f} ms" for n, v in un.items())
+            + ".",
+        ]
     if "fast_path_rate" in meta:
         lines += ["", f"Steps on the fast (windowed) path: {meta['fast_path_rate']}."]
     return "\n".join(lines) + "\n"
+
+
+def _untuned_main_timings(repeats: int) -> dict | None:
+    """The main JAX timings from a fresh process without tune_malloc (mallopt is process-wide)."""
+    cmd = [sys.executable, __file__, "--main-only", "--no-tune-malloc", f"--repeats={repeats}"]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=1800)
+    except (subprocess.SubprocessError, OSError) as err:
+        print(f"untuned comparison failed: {err}", flush=True)
+        return None
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main(args) -> dict:
@@ -345,7 +379,11 @@ def main(args) -> dict:
     for n in N_MAIN:
         r = time_jax_step(n, BOX_WH, frame, repeats)
         results[str(n)] = r
-        print(f"JAX   N={n:>7,}: {r['ms_per_frame']:7.2f} ms  {r['fps']:7.1f} frames/s", flush=True)
+        if not args.main_only:
+            print(f"JAX   N={n:>7,}: {r['ms_per_frame']:7.2f} ms  {r['fps']:7.1f} fps", flush=True)
+    if args.main_only:
+        print(json.dumps(results))
+        return results
     per_particle = None
     for n in N_MAIN:
         if n <= BASELINE_MAX_N:
@@ -358,6 +396,13 @@ def main(args) -> dict:
         results[str(n)]["baseline_scaled"] = n > BASELINE_MAX_N
         results[str(n)]["speedup"] = ms / results[str(n)]["ms_per_frame"]
     rate = {str(n): fast_path_rate(n, BOX_WH, frame) for n in N_MAIN}
+    untuned = None
+    if args.tune_malloc and args.compare_malloc and not args.quick:
+        untuned = _untuned_main_timings(repeats)
+        if untuned:
+            for n in N_MAIN:
+                ms = untuned[str(n)]["ms_per_frame"]
+                print(f"JAX (malloc not tuned) N={n:>7,}: {ms:7.2f} ms", flush=True)
     if not args.quick:
         table = {"n_particles": list(N_TABLE), "fps": {}, "ms_per_frame": {}}
         for w, h in TABLE_BOXES:
@@ -386,9 +431,12 @@ def main(args) -> dict:
         "load_before": [round(v, 2) for v in load_before],
         "load_after": [round(v, 2) for v in os.getloadavg()],
         "malloc_tuned": MALLOC_TUNED,
+        "untuned_ms_per_frame": (
+            {n: r["ms_per_frame"] for n, r in untuned.items()} if untuned else None
+        ),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "repeats": repeats,
-        "timing": "median of repeats, jax.block_until_ready, 5 warm-up steps excluded",
+        "timing": f"median of repeats, jax.block_until_ready, {WARMUP} warm-up steps excluded",
         "fast_path_rate": rate,
         "command": "python " + " ".join(["experiments/bench_colour.py"] + sys.argv[1:]),
     }

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from cpf_jax.kernels import color
 
 BIN_SETTINGS = [(8, 8), (16, 16), (26, 8), (30, 32)]
