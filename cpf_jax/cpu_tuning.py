@@ -6,12 +6,12 @@
     fresh ``mmap`` pages, returns them to the kernel on ``free`` and trims the
     heap top, so every frame pays the page faults again (visible as system
     time: 12,000 faults, 15 ms, per N = 100k colour step). Raising
-    ``M_MMAP_THRESHOLD`` (``mallopt`` parameter -3) to its maximum (32 MiB on
-    64-bit glibc) and ``M_TRIM_THRESHOLD`` (-1) keeps freed memory in the
-    process and reuses it. Blocks above 32 MiB would still be mmapped, so by
-    default ``M_MMAP_MAX`` (-4) is also set to 0: every block then comes from
-    the heap (``disable_mmap=False`` keeps glibc's mmap for huge blocks). The
-    cost: the process keeps its peak heap size.
+    ``M_MMAP_THRESHOLD`` (``mallopt`` parameter -3; 1 GiB requested, 32 MiB
+    where glibc caps it) and ``M_TRIM_THRESHOLD`` (-1, 1 GiB) keeps freed
+    memory in the process and reuses it. By default ``M_MMAP_MAX`` (-4) is also
+    set to 0 so that no block is served by a fresh ``mmap``
+    (``disable_mmap=False`` keeps glibc's mmap for huge blocks). The cost: the
+    process keeps its peak heap size.
 
     Call it **before JAX allocates anything** (first thing in a script or
     benchmark, before the first jitted call): glibc applies the thresholds to
@@ -38,8 +38,10 @@ __all__ = ["tune_malloc", "xla_cpu_flags"]
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 _M_MMAP_MAX = -4
-# Largest value glibc accepts for M_MMAP_THRESHOLD on 64-bit (HEAP_MAX / 2 = 32 MiB).
-_MMAP_THRESHOLD_MAX = 32 * 1024 * 1024
+# Requested mmap threshold; glibc versions that cap it (at HEAP_MAX / 2 = 32 MiB
+# on 64-bit) refuse larger values, and then the cap is used.
+_MMAP_THRESHOLD = 1 << 30
+_MMAP_THRESHOLD_CAP = 32 * 1024 * 1024
 _TRIM_THRESHOLD = 1 << 30
 
 
@@ -57,7 +59,7 @@ def _glibc():
 
 
 def tune_malloc(
-    mmap_threshold: int = _MMAP_THRESHOLD_MAX,
+    mmap_threshold: int = _MMAP_THRESHOLD,
     trim_threshold: int = _TRIM_THRESHOLD,
     *,
     disable_mmap: bool = True,
@@ -67,12 +69,18 @@ def tune_malloc(
     Must run before JAX allocates its buffers (see the module docstring).
     Returns ``True`` when glibc accepted every setting.
     """
+    for value in (mmap_threshold, trim_threshold):
+        if not -(2**31) <= int(value) < 2**31:
+            raise ValueError(f"mallopt value {value} does not fit a C int")
     libc = _glibc()
     if libc is None:
         return False
-    libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    libc.mallopt.restype = ctypes.c_int
+    if hasattr(libc.mallopt, "argtypes"):
+        libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+        libc.mallopt.restype = ctypes.c_int
     ok = libc.mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold)) == 1
+    if not ok and mmap_threshold > _MMAP_THRESHOLD_CAP:
+        ok = libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_CAP) == 1
     ok &= libc.mallopt(_M_TRIM_THRESHOLD, int(trim_threshold)) == 1
     if disable_mmap:
         ok &= libc.mallopt(_M_MMAP_MAX, 0) == 1

@@ -1,0 +1,88 @@
+"""cpf_jax.cpu_tuning: opt-in, no import-time effect, glibc detection."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from cpf_jax import cpu_tuning
+
+
+def _run(code: str) -> str:
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    return out.stdout.strip()
+
+
+def test_import_changes_nothing(monkeypatch):
+    # Re-import with ctypes.CDLL spied on: importing must not load libc or call mallopt.
+    import ctypes
+    import importlib
+
+    loaded = []
+    monkeypatch.setattr(ctypes, "CDLL", lambda *a, **k: loaded.append(a) or None)
+    importlib.reload(cpu_tuning)
+    assert loaded == []
+    monkeypatch.undo()
+    importlib.reload(cpu_tuning)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc check")
+def test_tune_malloc_on_glibc_in_fresh_process():
+    libc = cpu_tuning._glibc()
+    if libc is None:
+        pytest.skip("not glibc")
+    # A fresh process: mallopt is process-wide and must not leak into the test session.
+    assert _run("from cpf_jax.cpu_tuning import tune_malloc; print(tune_malloc())") == "True"
+    assert (
+        _run("from cpf_jax.cpu_tuning import tune_malloc; print(tune_malloc(disable_mmap=False))")
+        == "True"
+    )
+    with pytest.raises(ValueError):
+        cpu_tuning.tune_malloc(1 << 40)  # would overflow C int: refused before any call
+
+
+class _FakeLibc:
+    """Records mallopt calls; refuses mmap thresholds above ``cap``."""
+
+    def __init__(self, cap):
+        self.cap, self.calls = cap, []
+        self.mallopt = self._mallopt
+
+    def _mallopt(self, param, value):
+        self.calls.append((param, value))
+        return 0 if (param == -3 and value > self.cap) else 1
+
+
+def test_tune_malloc_settings_and_capped_glibc(monkeypatch):
+    fake = _FakeLibc(cap=1 << 40)
+    monkeypatch.setattr(cpu_tuning, "_glibc", lambda: fake)
+    assert cpu_tuning.tune_malloc() is True
+    assert fake.calls == [(-3, 1 << 30), (-1, 1 << 30), (-4, 0)]
+    # An older glibc capping the threshold at 32 MiB: the cap is used instead.
+    fake = _FakeLibc(cap=32 << 20)
+    monkeypatch.setattr(cpu_tuning, "_glibc", lambda: fake)
+    assert cpu_tuning.tune_malloc(disable_mmap=False) is True
+    assert fake.calls == [(-3, 1 << 30), (-3, 32 << 20), (-1, 1 << 30)]
+    # A refused setting is reported as False, not raised.
+    fake = _FakeLibc(cap=0)
+    monkeypatch.setattr(cpu_tuning, "_glibc", lambda: fake)
+    assert cpu_tuning.tune_malloc() is False
+
+
+def test_tune_malloc_returns_false_without_glibc(monkeypatch):
+    monkeypatch.setattr(cpu_tuning, "_glibc", lambda: None)
+    assert cpu_tuning.tune_malloc() is False
+
+
+def test_xla_cpu_flags_only_returns_a_string(monkeypatch):
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert cpu_tuning.xla_cpu_flags() == ""
+    flags = cpu_tuning.xla_cpu_flags(single_threaded=True, extra="--xla_dump_to=/tmp/x")
+    assert flags == "--xla_cpu_multi_thread_eigen=false --xla_dump_to=/tmp/x"
+    import os
+
+    assert "XLA_FLAGS" not in os.environ
