@@ -188,7 +188,7 @@ def window_origin(rects: Array, window: tuple[int, int], frame_shape: tuple[int,
     (``window_covers``). With no non-empty rect the origin is ``(0, 0)``.
     """
     fh, fw = frame_shape
-    wh, ww = window
+    wh, ww = min(window[0], fh), min(window[1], fw)
     r = rects.reshape(-1, 4)
     ne = _nonempty(r)
     big = jnp.iinfo(jnp.int32).max
@@ -204,6 +204,13 @@ def window_origin(rects: Array, window: tuple[int, int], frame_shape: tuple[int,
     ox = jnp.clip(ox, 0, fw - ww)
     oy = jnp.clip(oy, 0, fh - wh)
     return jnp.stack([oy, ox]).astype(jnp.int32)
+
+
+def _check_count_dtype(count_dtype) -> jnp.dtype:
+    dtype = jnp.dtype(count_dtype)
+    if dtype not in (jnp.uint16, jnp.uint32, jnp.int32):
+        raise ValueError(f"count_dtype must be uint16, uint32 or int32, not {dtype}")
+    return dtype
 
 
 def window_covers(
@@ -222,7 +229,7 @@ def window_covers(
     oy, ox = origin[0], origin[1]
     inside = (r[:, 0] >= ox) & (r[:, 1] >= oy) & (r[:, 2] <= ox + ww) & (r[:, 3] <= oy + wh)
     ok = inside
-    if jnp.dtype(count_dtype).itemsize < 4:
+    if _check_count_dtype(count_dtype) == jnp.uint16:
         area = (r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])
         ok = ok & (area < _U16_LIMIT)
     return jnp.all(ok | ~_nonempty(r))
@@ -400,6 +407,7 @@ def rect_reduce(
     compute several per-box scores from one pass over the table.
     """
     fh, fw = bins.shape
+    count_dtype = _check_count_dtype(count_dtype)
     rects = jnp.asarray(rects, jnp.int32)
     single = rects.ndim == 1
     rects = clip_rect(rects[None] if single else rects, fw, fh)

@@ -261,6 +261,14 @@ def test_uint16_limit_falls_back_and_int32_table_stays_fast(frames):
     np.testing.assert_array_equal(np.asarray(f32(bins[0], big)), ref)
 
 
+def test_signed_16_bit_table_is_refused(frames):
+    # int16 would wrap counts >= 32,768 to negative values: not a valid count dtype.
+    with pytest.raises(ValueError):
+        H.rect_histograms_fast(
+            frames[2][0], EDGE_RECTS, n_bins=NB, window=WINDOW, count_dtype=jnp.int16
+        )
+
+
 def test_int32_table_fast_path(frames):
     _, hsvs, bins = frames
     _, rects = _cloud_rects(5)
