@@ -132,6 +132,10 @@ def crop_window(depth: Array, box: Array, shape: tuple[int, int], margin: float 
     return d, win, rows, cols, roi
 
 
+_SORT8 = ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (1, 2), (5, 6), (0, 4),
+          (3, 7), (1, 5), (2, 6), (1, 4), (3, 6), (2, 4), (3, 5), (3, 4))
+
+
 def fill_holes(depth: Array, region: Array | None = None) -> Array:
     """Fill missing (0) pixels with the median of their non-missing 3x3 neighbours.
 
@@ -146,11 +150,15 @@ def fill_holes(depth: Array, region: Array | None = None) -> Array:
     z = jnp.asarray(depth, jnp.float32)
     region = jnp.ones(z.shape, bool) if region is None else jnp.asarray(region, bool)
     ok = region & (z > 0)
-    nbrs = jnp.stack([neighbour(jnp.where(ok, z, jnp.inf), dr, dc, jnp.inf) for dr, dc in RING])
-    nbrs = jnp.sort(nbrs, axis=0)  # missing (inf) sort last
-    k = jnp.sum(jnp.isfinite(nbrs), axis=0)
-    lo = jnp.take_along_axis(nbrs, jnp.maximum((k - 1) // 2, 0)[None], axis=0)[0]
-    hi = jnp.take_along_axis(nbrs, jnp.maximum(k // 2, 0)[None], axis=0)[0]
+    v = [neighbour(jnp.where(ok, z, jnp.inf), dr, dc, jnp.inf) for dr, dc in RING]
+    # Batcher's 19-comparator sorting network: elementwise min/max, no sort op.
+    for a, b in _SORT8:
+        v[a], v[b] = jnp.minimum(v[a], v[b]), jnp.maximum(v[a], v[b])
+    k = sum(jnp.isfinite(x).astype(jnp.int32) for x in v)  # missing (inf) sort last
+    i_lo = jnp.maximum((k - 1) // 2, 0)
+    i_hi = jnp.maximum(k // 2, 0)
+    lo = sum(jnp.where(i_lo == j, v[j], 0.0) for j in range(8))
+    hi = sum(jnp.where(i_hi == j, jnp.where(jnp.isfinite(v[j]), v[j], 0.0), 0.0) for j in range(8))
     med = jnp.where(k > 0, 0.5 * (lo + jnp.where(k > 1, hi, lo)), 0.0)
     return jnp.where(region & (z <= 0), med, jnp.where(region, z, 0.0))
 
@@ -212,9 +220,13 @@ def vertex_normals(points: Array, weights: Array, smooth: int = 0) -> tuple[Arra
     """
     p = jnp.asarray(points, jnp.float32)
     spokes = _spokes(jnp.asarray(weights))
-    vecs = [neighbour(p, dr, dc, 0.0) - p for dr, dc in RING]
-    acc = jnp.zeros_like(p)
-    nfaces = jnp.zeros(p.shape[:2], jnp.int32)
+    # Work on the three coordinate planes separately: [H, W] arrays vectorise far
+    # better on CPU than [H, W, 3] with reductions over a length-3 minor axis.
+    px, py, pz = p[..., 0], p[..., 1], p[..., 2]
+    vecs = [tuple(neighbour(c, dr, dc, 0.0) - c for c in (px, py, pz)) for dr, dc in RING]
+    lens = [jnp.sqrt(a * a + b * b + c * c) for a, b, c in vecs]
+    ax = ay = az = jnp.zeros_like(px)
+    nfaces = jnp.zeros(px.shape, jnp.int32)
     # Faces: consecutive spokes (k, k+1); where a diagonal spoke k+1 is missing,
     # the right-angle face between its straight neighbours (k, k+2) instead, so
     # that a graph without diagonal edges (far surfaces) still has faces.
@@ -222,23 +234,23 @@ def vertex_normals(points: Array, weights: Array, smooth: int = 0) -> tuple[Arra
     faces += [(k, (k + 2) % 8, spokes[k] & spokes[(k + 2) % 8] & ~spokes[k + 1])
               for k in (0, 2, 4, 6)]
     for ka, kb, ok in faces:
-        a, b = vecs[ka], vecs[kb]
-        cr = jnp.cross(a, b)
-        ncr = jnp.sqrt(jnp.sum(cr * cr, -1, keepdims=True))
-        la = jnp.sqrt(jnp.sum(a * a, -1))
-        lb = jnp.sqrt(jnp.sum(b * b, -1))
-        cosang = jnp.sum(a * b, -1) / jnp.where(ok, la * lb, 1.0)
-        ang = jnp.arccos(jnp.clip(cosang, -1.0, 1.0))
-        fn = cr / jnp.where(ncr > 0, ncr, 1.0)
-        fn = jnp.where(jnp.sum(fn * p, -1, keepdims=True) > 0, -fn, fn)
-        ok = ok & (ncr[..., 0] > 0)
-        acc = acc + jnp.where(ok[..., None], ang[..., None] * fn, 0.0)
+        (a1, a2, a3), (b1, b2, b3) = vecs[ka], vecs[kb]
+        c1 = a2 * b3 - a3 * b2
+        c2 = a3 * b1 - a1 * b3
+        c3 = a1 * b2 - a2 * b1
+        ncr = jnp.sqrt(c1 * c1 + c2 * c2 + c3 * c3)
+        ok = ok & (ncr > 0)
+        cosang = (a1 * b1 + a2 * b2 + a3 * b3) / jnp.where(ok, lens[ka] * lens[kb], 1.0)
+        ang = _acos(cosang)
+        # orient towards the sensor (n . p < 0) and weight by the angle
+        sgn = jnp.where(c1 * px + c2 * py + c3 * pz > 0, -1.0, 1.0)
+        f = jnp.where(ok, sgn * ang / jnp.where(ok, ncr, 1.0), 0.0)
+        ax, ay, az = ax + f * c1, ay + f * c2, az + f * c3
         nfaces = nfaces + ok.astype(jnp.int32)
     if smooth > 0:
         own = nfaces > 0
-        acc = _box_sum(acc, smooth)
-        acc = jnp.where(own[..., None], acc, 0.0)
-        nfaces = jnp.where(own, nfaces, 0)
+        ax, ay, az = (jnp.where(own, _box_sum(c, smooth), 0.0) for c in (ax, ay, az))
+    acc = jnp.stack([ax, ay, az], -1)
     norm = jnp.sqrt(jnp.sum(acc * acc, -1, keepdims=True))
     valid = (nfaces > 0) & (norm[..., 0] > 0)
     pn = jnp.sqrt(jnp.sum(p * p, -1, keepdims=True))
@@ -248,11 +260,29 @@ def vertex_normals(points: Array, weights: Array, smooth: int = 0) -> tuple[Arra
     return n, valid
 
 
+_ACOS = (1.5707963050, -0.2145988016, 0.0889789874, -0.0501743046, 0.0308918810, -0.0170881256,
+         0.0066700901, -0.0012624911)
+
+
+def _acos(x: Array) -> Array:
+    """arccos by Abramowitz & Stegun 4.4.46 (|error| <= 2e-8 rad).
+
+    XLA's arccos on CPU is a scalar library call (about 30 ns per element);
+    this polynomial vectorises and made the normals 5x faster.
+    """
+    x = jnp.clip(x, -1.0, 1.0)
+    t = jnp.abs(x)
+    poly = _ACOS[7]
+    for c in _ACOS[6::-1]:
+        poly = poly * t + c
+    r = jnp.sqrt(1.0 - t) * poly
+    return jnp.where(x < 0, jnp.pi - r, r)
+
+
 def _box_sum(a: Array, k: int) -> Array:
-    """Sum over the ``(2k+1)^2`` neighbourhood of the two leading axes (zero padding), separable."""
-    h, w = a.shape[:2]
-    pad = [(k, k), (k, k)] + [(0, 0)] * (a.ndim - 2)
-    p = jnp.pad(a, pad)
+    """Sum of an ``[H, W]`` array over the ``(2k+1)^2`` neighbourhood (zero padding), separable."""
+    h, w = a.shape
+    p = jnp.pad(a, k)
     rows = sum(p[i:i + h] for i in range(2 * k + 1))
     return sum(rows[:, j:j + w] for j in range(2 * k + 1))
 
