@@ -250,6 +250,17 @@ def _ir(rgb, base=0.25, gain=0.6) -> float:
     return base + gain * _lum(rgb)
 
 
+def _alike(rgb, target, hue_deg: float = 30.0) -> bool:
+    """Whether two colours fall in nearby hue-saturation histogram cells (greys match
+    greys of similar brightness)."""
+    h1, s1, v1 = colorsys.rgb_to_hsv(*(np.asarray(rgb, float) / 255.0))
+    h2, s2, v2 = colorsys.rgb_to_hsv(*(np.asarray(target, float) / 255.0))
+    if s1 < 0.2 or s2 < 0.2:
+        return s1 < 0.2 and s2 < 0.2 and abs(v1 - v2) < 0.25
+    dh = abs(h1 - h2) * 360.0
+    return min(dh, 360.0 - dh) < hue_deg and abs(s1 - s2) < 0.4
+
+
 def _similar_colour(rng: np.random.Generator, rgb, similarity: float) -> tuple:
     """A colour whose hue/saturation/value differ from ``rgb`` by ``(1 - similarity)``-scaled
     random amounts (similarity 1: the same colour; 0: up to 90 degrees of hue away)."""
@@ -408,7 +419,8 @@ _TAN_HALF_FOV = min(KINECT_V2_DEPTH.cx, WIDTH - 1 - KINECT_V2_DEPTH.cx) / KINECT
 
 
 def _plan_path(spec: ScenarioSpec, rng: np.random.Generator, duration_s: float):
-    """Waypoints (x, z), corner radius, start offset and the in-view walk length."""
+    """Waypoints (x, z), corner radius, start offset, the in-view walk length (inf: the
+    pace loop repeats) and the arc length that covers every place the walk visits."""
     v = spec.speed_mps
     mirror = rng.choice([-1.0, 1.0])
     if spec.path == "pace":
@@ -422,21 +434,23 @@ def _plan_path(spec: ScenarioSpec, rng: np.random.Generator, duration_s: float):
         wps = [loop[i % 4] for i in range(4 * n_loops + 1)]
         wps = np.array(wps) * np.array([mirror, 1.0])
         s0 = rng.uniform(0.0, 0.5 * span)
-        return wps, r, s0, np.inf
+        return wps, r, s0, np.inf, s0 + body.planned_length(wps[:6], r)
     if spec.path in ("towards", "away"):
         x0 = rng.uniform(-0.4, 0.4)
         x1 = x0 + rng.uniform(-0.4, 0.4)
         wps = np.array([(x0, spec.far_m), (x1, spec.near_m)])
         if spec.path == "away":
             wps = wps[::-1]
-        return wps, 0.0, 0.0, body.planned_length(wps, 0.0)
+        length = body.planned_length(wps, 0.0)
+        return wps, 0.0, 0.0, length, length
     if spec.path == "turn":
         z_across = spec.far_m - 0.4
         xs = -(z_across * _TAN_HALF_FOV - 0.8)
         xc = rng.uniform(0.1, 0.5)
         wps = np.array([(xs, z_across), (xc, z_across), (xc, spec.near_m + 0.2)])
         wps = wps * np.array([mirror, 1.0])
-        return wps, 0.5, 0.0, body.planned_length(wps, 0.5)
+        length = body.planned_length(wps, 0.5)
+        return wps, 0.5, 0.0, length, length
     raise ValueError(f"unknown path {spec.path!r}; expected 'pace', 'towards', 'away' or 'turn'")
 
 
@@ -491,11 +505,20 @@ def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep_out)
     cl = spec.clothing
     x0, x1, z0, z1, amin, amax = keep_out
 
+    # Unmatched clutter avoids the clothing's colours, so that ``clutter_match`` alone
+    # decides how much of the scene resembles the person.
+    clothes = (cl.shirt, cl.trousers)
+    furniture = [c for c in _FURNITURE_COLOURS if not any(_alike(c, k) for k in clothes)]
+    books = tuple(c for c in _BOOK_COLOURS if not any(_alike(c, k) for k in clothes))
+    furniture = furniture or list(_FURNITURE_COLOURS)
+    books = books if len(books) >= 4 else tuple(_BOOK_COLOURS)
+
     def colour_for_clutter():
-        if rng.uniform() < spec.clutter_match:
-            target = cl.shirt if rng.uniform() < 0.7 else cl.trousers
-            return _similar_colour(rng, target, spec.distractor_similarity)
-        return _FURNITURE_COLOURS[rng.integers(len(_FURNITURE_COLOURS))]
+        matched = rng.uniform() < spec.clutter_match
+        target = cl.shirt if rng.uniform() < 0.7 else cl.trousers
+        similar = _similar_colour(rng, target, spec.distractor_similarity)
+        plain = furniture[rng.integers(len(furniture))]
+        return (similar if matched else plain), matched
 
     def allowed(cx, cz, w, d):
         xa, xb, za, zb = cx - w / 2, cx + w / 2, cz - d / 2, cz + d / 2
@@ -512,13 +535,14 @@ def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep_out)
         return True
 
     # Posters on the back wall (no depth of their own: 1 cm thick).
-    palette_pool = [tuple(c) for c in _BOOK_COLOURS]
+    palette_pool = list(books)
     for _ in range(1 + spec.clutter // 3):
         w, h = rng.uniform(0.4, 1.0), rng.uniform(0.5, 1.0)
         cx = rng.uniform(-W2 + w, W2 - w)
         pal = tuple(palette_pool[i] for i in rng.choice(len(palette_pool), 4, replace=False))
-        if rng.uniform() < spec.clutter_match:
-            pal = (_similar_colour(rng, cl.shirt, spec.distractor_similarity),) + pal[1:]
+        similar = _similar_colour(rng, cl.shirt, spec.distractor_similarity)
+        if rng.uniform() < spec.clutter_match:  # (same draws whatever the knobs: same layout)
+            pal = (similar,) + pal[1:]
         kind = "stripes" if rng.uniform() < 0.4 else "blotches"
         m = mat(_Material(pal[0], 0.5, kind, rng.uniform(0.04, 0.12), 0.05, pal))
         add_box((cx, rng.uniform(1.1, 1.8), D - 0.006), (w, h, 0.012), m)
@@ -551,9 +575,11 @@ def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep_out)
                 break
         else:
             continue
-        rgb = colour_for_clutter()
+        rgb, matched = colour_for_clutter()
         if kind in ("shelf", "wall_shelf"):
-            m_frame = mat(_Material(rgb, _ir(rgb), "books", 0.01, 0.06, tuple(_BOOK_COLOURS)))
+            pal = books + ((rgb, rgb) if matched else ())
+            frame_rgb = rgb if matched else _FURNITURE_COLOURS[rng.choice([0, 1, 3, 6])]
+            m_frame = mat(_Material(frame_rgb, _ir(frame_rgb), "books", 0.01, 0.06, pal))
             y0 = rng.uniform(1.1, 2.5 - h) if kind == "wall_shelf" else 0.0
             add_box((cx, y0 + h / 2, cz), (w, h, d), m_frame)
         elif kind == "cabinet":
@@ -793,7 +819,7 @@ def make_sequence(
     cam = _camera(spec.camera_height_m, spec.camera_pitch_deg)
 
     n_req = int(n_frames) if n_frames is not None else int(spec.n_frames)
-    wps, radius, s0, walk_len = _plan_path(spec, layout_rng, n_req / fps)
+    wps, radius, s0, walk_len, extent_len = _plan_path(spec, layout_rng, n_req / fps)
     if n_frames is None and np.isfinite(walk_len):
         n_req = min(n_req, int(np.floor(walk_len / spec.speed_mps * fps)) + 1)
     T = max(n_req, 1)
@@ -805,8 +831,9 @@ def make_sequence(
     phase0 = layout_rng.uniform(0, 2 * np.pi)
     phase = phase0 + np.pi * (s - s0) / step
 
-    # Keep-out region of the walk (for furniture placement).
-    walked = path.xz[(path.s >= s0 - 0.1) & (path.s <= s[-1] + 0.1)]
+    # Keep-out region of the planned walk (for furniture placement); independent of the
+    # sequence length so that frame t of a seed never depends on n_frames.
+    walked = path.xz[path.s <= extent_len + 0.1]
     xs, zs = walked[:, 0], walked[:, 1]
     # The body reaches ~0.45 m from the path (stride, arm swing) and ~0.6 m sideways in view.
     amin = float(np.min((xs - 0.6) / zs))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from cpf_jax.kernels.boxes import xywh_to_rect
 
+from cpf_jax.kernels.boxes import xywh_to_rect
 from cpf_jax.synthetic import (
     SCENARIOS,
     Occluder,
@@ -365,11 +365,13 @@ def test_occluder_hook_reports_partial_and_full_occlusion():
 
 def test_shirt_colour_change():
     s = make_sequence("walk_across_medium", n_frames=8, shirt_change=(4, (40, 80, 200)))
-    blue = [
-        np.median(s.colour[t][s.mask[t]][:, 2]) - np.median(s.colour[t][s.mask[t]][:, 0])
-        for t in range(8)
-    ]
-    assert max(blue[:4]) < 0 < min(blue[4:])
+    tor = np.rint(s.joints2d[:, _j(s, "torso")]).astype(int)
+    blue_minus_red = []
+    for t in range(8):
+        u, v = tor[t]
+        chest = s.colour[t][v - 8 : v + 9, u - 5 : u + 6][s.mask[t][v - 8 : v + 9, u - 5 : u + 6]]
+        blue_minus_red.append(np.median(chest[:, 2].astype(int) - chest[:, 0]))
+    assert max(blue_minus_red[:4]) < -50 and min(blue_minus_red[4:]) > 50
 
 
 # -- export ---------------------------------------------------------------------------------
