@@ -1,0 +1,55 @@
+"""cpf_jax: cascaded particle-filter tracking of people in RGB-D video, as pure jitted JAX.
+
+Layer 1 (``cpf_jax.colour``) tracks the person's box with H-S colour
+histograms; the kernels it is built from live in ``cpf_jax.kernels``. Frame
+sources and results files are in ``cpf_jax.io``, metrics in
+``cpf_jax.metrics``, Rerun logging in ``cpf_jax.viz`` and synthetic RGB-D
+sequences with ground truth in ``cpf_jax.synthetic``.
+
+Importing the package changes no global JAX configuration.
+"""
+
+from cpf_jax.colour import (
+    ColourConfig,
+    ColourInfo,
+    ColourParams,
+    ColourState,
+    build_colour_filter,
+    default_colour_params,
+    reference_histogram,
+    track,
+    track_boxes,
+)
+from cpf_jax.dynamics import DEFAULT_TAU, MODELS, MotionParams, propagate
+from cpf_jax.errors import CameraUnavailable, CpfJaxError, SourceError
+from cpf_jax.io import open_source
+from cpf_jax.metrics import summarise
+from cpf_jax.types import KINECT_V2_DEPTH, Filter, Frame, Intrinsics
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ColourConfig",
+    "ColourInfo",
+    "ColourParams",
+    "ColourState",
+    "build_colour_filter",
+    "default_colour_params",
+    "reference_histogram",
+    "track",
+    "track_boxes",
+    "DEFAULT_TAU",
+    "MODELS",
+    "MotionParams",
+    "propagate",
+    "CameraUnavailable",
+    "CpfJaxError",
+    "SourceError",
+    "open_source",
+    "summarise",
+    "KINECT_V2_DEPTH",
+    "Filter",
+    "Frame",
+    "Intrinsics",
+    "__version__",
+]

@@ -71,6 +71,9 @@ __all__ = [
     "default_colour_params",
     "reference_histogram",
     "track",
+    "track_boxes",
+    "box_parts",
+    "contrast_weights",
 ]
 
 ESTIMATORS = ("mean", "map", "robust")

@@ -1,0 +1,163 @@
+"""Colour-layer filter: structure (jit, scan, vmap, no retracing), degenerate inputs, tracking."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cpf_jax.colour import (
+    ColourConfig,
+    build_colour_filter,
+    default_colour_params,
+    reference_histogram,
+    track,
+    track_boxes,
+)
+from cpf_jax.kernels.boxes import iou
+from cpf_jax.types import Frame
+
+H, W = 120, 160
+
+
+def _scene(t: int, x0: float = 30.0, speed: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """A red-over-blue 'person' (20x50 px) moving right over a textured green-grey background."""
+    rng = np.random.default_rng(t)
+    img = np.empty((H, W, 3), np.uint8)
+    img[..., 0] = 90 + rng.integers(0, 20, (H, W))
+    img[..., 1] = 110 + rng.integers(0, 20, (H, W))
+    img[..., 2] = 90 + rng.integers(0, 20, (H, W))
+    x = int(round(x0 + speed * t))
+    img[35:60, x : x + 20] = (200, 30, 40)  # shirt
+    img[60:85, x : x + 20] = (30, 40, 150)  # trousers
+    return img, np.array([x, 35, 20, 50], np.float32)
+
+
+def _frames(n: int, **kw) -> tuple[Frame, np.ndarray]:
+    imgs, boxes = zip(*(_scene(t, **kw) for t in range(n)), strict=True)
+    colour = jnp.asarray(np.stack(imgs))
+    return Frame(colour, jnp.zeros(colour.shape[:3], jnp.uint16)), np.stack(boxes)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return _frames(30)
+
+
+CONFIG = ColourConfig(n_particles=128)
+FILTER = build_colour_filter(CONFIG)
+PARAMS = default_colour_params()
+
+
+def test_reference_histogram_parts_are_normalised():
+    frames, boxes = _frames(1)
+    ref = reference_histogram(Frame(frames.colour[0], frames.depth[0]), boxes[0], parts=2)
+    assert ref.shape == (2, CONFIG.n_bins)
+    np.testing.assert_allclose(np.asarray(ref.sum(-1)), 1.0, rtol=1e-6)
+    # the two stripes see different colours (shirt vs trousers)
+    assert int(jnp.argmax(ref[0])) != int(jnp.argmax(ref[1]))
+
+
+def test_tracks_a_moving_box_under_scan(seq):
+    frames, gt = seq
+    boxes = np.asarray(jax.jit(lambda k: track_boxes(FILTER, PARAMS, k, frames, gt[0]))(
+        jax.random.PRNGKey(0)))
+    assert boxes.shape == (30, 4) and np.isfinite(boxes).all()
+    ious = np.asarray(iou(boxes, gt))
+    assert (ious >= 0.5).mean() >= 0.95, ious.round(2)
+
+
+def test_step_state_and_info_are_finite_and_shaped(seq):
+    frames, gt = seq
+    f0 = Frame(frames.colour[0], frames.depth[0])
+    state = jax.jit(FILTER.init)(PARAMS, jax.random.PRNGKey(0), f0, gt[0])
+    state, info = jax.jit(FILTER.step)(PARAMS, jax.random.PRNGKey(1),
+                                       state, Frame(frames.colour[1], frames.depth[1]))
+    assert state.particles.shape == (128, 8) and state.log_weights.shape == (128,)
+    assert 1.0 <= float(info.ess) <= 128.0
+    for leaf in jax.tree_util.tree_leaves((state, info)):
+        assert np.isfinite(np.asarray(leaf, np.float32)).all()
+
+
+def test_no_retracing_from_frame_to_frame(seq):
+    frames, gt = seq
+    traces = []
+
+    def counted(params, key, state, frame):
+        traces.append(1)
+        return FILTER.step(params, key, state, frame)
+
+    step = jax.jit(counted)
+    state = FILTER.init(PARAMS, jax.random.PRNGKey(0), Frame(frames.colour[0], frames.depth[0]),
+                        gt[0])
+    for t in range(1, 6):
+        state, _ = step(PARAMS, jax.random.PRNGKey(t), state,
+                        Frame(frames.colour[t], frames.depth[t]))
+    assert len(traces) == 1
+
+
+def test_vmap_over_seeds_and_over_sigma(seq):
+    frames, gt = seq
+    short = jax.tree_util.tree_map(lambda x: x[:8], frames)
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    by_seed = jax.vmap(lambda k: track_boxes(FILTER, PARAMS, k, short, gt[0]))(keys)
+    assert by_seed.shape == (3, 8, 4)
+    assert not np.allclose(np.asarray(by_seed[0]), np.asarray(by_seed[1]))  # seeds differ
+    sigmas = jnp.array([0.05, 0.1, 0.3])
+    by_sigma = jax.vmap(
+        lambda s: track_boxes(FILTER, PARAMS._replace(sigma=s), keys[0], short, gt[0])
+    )(sigmas)
+    assert by_sigma.shape == (3, 8, 4) and np.isfinite(np.asarray(by_sigma)).all()
+
+
+@pytest.mark.parametrize("model", ["ar1_fixed", "ar2", "ar2_fixed", "random_walk"])
+@pytest.mark.parametrize("estimator", ["map", "robust"])
+def test_every_model_and_estimator_runs(seq, model, estimator):
+    frames, gt = seq
+    short = jax.tree_util.tree_map(lambda x: x[:6], frames)
+    filt = build_colour_filter(ColourConfig(n_particles=32, model=model, estimator=estimator,
+                                            resampler="residual", ess_threshold=0.5))
+    boxes = np.asarray(track_boxes(filt, PARAMS, jax.random.PRNGKey(0), short, gt[0]))
+    assert np.isfinite(boxes).all()
+    if model.endswith("_fixed"):
+        np.testing.assert_allclose(boxes[:, 2:], np.tile(gt[0, 2:], (6, 1)), rtol=1e-5)
+
+
+def test_invalid_weights_fall_back_to_uniform_without_nan(seq):
+    frames, gt = seq
+    bad = PARAMS._replace(sigma=jnp.float32(jnp.nan))
+    _, infos = track(FILTER, bad, jax.random.PRNGKey(0), jax.tree_util.tree_map(
+        lambda x: x[:4], frames), gt[0])
+    assert bool(jnp.all(infos.weights_invalid)) and bool(jnp.all(infos.lost))
+    assert np.isfinite(np.asarray(infos.estimate)).all()
+
+
+def test_lost_target_is_flagged_and_found_again():
+    """The person vanishes for 5 frames, then reappears 60 px away: lost, then re-acquired."""
+    imgs, boxes = [], []
+    for t in range(24):
+        img, box = _scene(t, x0=20.0, speed=1.0)
+        if 8 <= t < 13:
+            img, _ = _scene(t, x0=-1000.0)  # person out of view (empty slice)
+        if t >= 13:
+            img, box = _scene(t, x0=80.0, speed=1.0)
+        imgs.append(img)
+        boxes.append(box)
+    colour = jnp.asarray(np.stack(imgs))
+    frames = Frame(colour, jnp.zeros(colour.shape[:3], jnp.uint16))
+    filt = build_colour_filter(ColourConfig(n_particles=256, recovery_fraction=0.3))
+    _, infos = jax.jit(lambda k: track(filt, PARAMS, k, frames, boxes[0]))(jax.random.PRNGKey(2))
+    lost = np.asarray(infos.lost)  # infos[t - 1] belongs to frame t
+    assert lost[7:12].all() and not lost[:6].any()
+    ious = np.asarray(iou(np.asarray(infos.estimate[-4:]), np.stack(boxes[-4:])))
+    assert (ious > 0.5).all(), ious
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="model"):
+        ColourConfig(model="nope")
+    with pytest.raises(ValueError, match="n_particles"):
+        ColourConfig(n_particles=0)
+    with pytest.raises(ValueError, match="estimator"):
+        ColourConfig(estimator="median")
