@@ -118,6 +118,9 @@ class PointFilterConfig:
     # angle of ``up`` (camera coordinates, Y down). None: no floor removal (thesis).
     floor_max_tilt_deg: float | None = 30.0
     up: tuple[float, float, float] = (0.0, -1.0, 0.0)
+    # Only components at least this far in front of the box's background (median
+    # depth of the ROI border) may be the body; None: the thesis's plain largest.
+    background_margin_mm: float | None = 250.0
     patch_radius: int = 32  # window pixels visited per spin image (see kernels.spin)
     spin_batch: int = 32  # spin images computed per lax.map step
     follow_box: bool = True
@@ -280,7 +283,22 @@ def body_model(config: PointFilterConfig, depth: Array, box: Array,
         floor = ok_all & (n_all @ up > math.cos(math.radians(config.floor_max_tilt_deg)))
         valid = valid & ~floor
     edges = gk.pixel_graph(d, valid, config.seg_max_dz_mm * tscale)
-    body = gk.largest_component(gk.connected_components(edges), valid)
+    labels = gk.connected_components(edges)
+    eligible = valid
+    if config.background_margin_mm is not None:
+        # The thesis keeps the largest component. In a tight box around a thin
+        # (side-on) person the wall behind can be larger, so only components whose
+        # mean depth is in front of the ROI border's median depth (the box's
+        # background) by the margin compete; if none is, all do.
+        h, w_ = shape
+        ring = jnp.zeros(shape, bool).at[0].set(True).at[h - 1].set(True)
+        ring = ring.at[:, 0].set(True).at[:, w_ - 1].set(True)
+        ring_roi = ring | (roi & ~dk.erode(roi))
+        z_bg = jnp.nanmedian(jnp.where(ring_roi & valid, d, jnp.nan))
+        zc = gk.component_mean(labels, d, valid)
+        front = valid & (zc < z_bg - config.background_margin_mm)
+        eligible = jnp.where(jnp.any(front) & jnp.isfinite(z_bg), front, valid)
+    body = gk.largest_component(labels, eligible)
     w = gk.surface_graph(pts, body, config.surface_max_dist_mm * tscale)
     normals, nvalid = dk.vertex_normals(pts, w, config.normal_smoothing)
     mres = gk.mesh_resolution(w)

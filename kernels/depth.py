@@ -45,6 +45,7 @@ __all__ = [
     "HeadSplit",
     "head_neck_split",
     "nearest_true",
+    "erode",
 ]
 
 # The 8 neighbours in angular order around a pixel (d_row, d_col): E, SE, S, SW, W, NW, N, NE.
@@ -365,3 +366,12 @@ def nearest_true(mask: Array, rc: Array) -> tuple[Array, Array]:
     flat = jnp.argmin(d2.reshape(d2.shape[:-2] + (h * w,)), axis=-1)
     pix = jnp.stack([flat // w, flat % w], axis=-1).astype(jnp.int32)
     return pix, jnp.broadcast_to(jnp.any(m), pix.shape[:-1])
+
+
+def erode(mask: Array) -> Array:
+    """3x3 binary erosion of ``[H, W] bool`` (outside the image counts as False)."""
+    m = jnp.asarray(mask, bool)
+    out = m
+    for dr, dc in RING:
+        out = out & neighbour(m, dr, dc, False)
+    return out

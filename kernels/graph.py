@@ -69,6 +69,7 @@ __all__ = [
     "mesh_resolution",
     "connected_components",
     "largest_component",
+    "component_mean",
     "geodesic_distances",
     "geodesic_from_pixels",
     "edge_list",
@@ -280,6 +281,23 @@ def largest_component(labels: Array, valid: Array) -> Array:
     counts = jnp.zeros(n, jnp.int32).at[labels.reshape(-1)].add(valid.reshape(-1).astype(jnp.int32))
     best = jnp.argmax(counts)
     return valid & (labels == best) & (counts[best] > 0)
+
+
+def component_mean(labels: Array, values: Array, valid: Array) -> Array:
+    """Per pixel, the mean of ``values`` over the ``valid`` pixels of its component (``[H, W]``).
+
+    Pixels of components without valid pixels get ``nan``.
+    """
+    labels = jnp.asarray(labels, jnp.int32).reshape(-1)
+    valid = jnp.asarray(valid, bool).reshape(-1)
+    values = jnp.asarray(values, jnp.float32)
+    shape = values.shape
+    n = labels.size
+    w = valid.astype(jnp.float32)
+    sums = jnp.zeros(n, jnp.float32).at[labels].add(jnp.where(valid, values.reshape(-1), 0.0))
+    cnts = jnp.zeros(n, jnp.float32).at[labels].add(w)
+    mean = jnp.where(cnts > 0, sums / jnp.maximum(cnts, 1.0), jnp.nan)
+    return mean[labels].reshape(shape)
 
 
 def geodesic_distances(

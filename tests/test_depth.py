@@ -6,9 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from cpf_jax.kernels import depth as dk
 from cpf_jax.kernels import graph as gk
-
 from cpf_jax.types import KINECT_V2_DEPTH, Intrinsics
 
 
@@ -235,3 +235,14 @@ def test_nearest_true_brute_force():
     assert np.asarray(found).all()
     _, f2 = dk.nearest_true(np.zeros((5, 5), bool), q[:3])
     assert not np.asarray(f2).any()
+
+
+def test_erode_matches_loop():
+    rng = np.random.default_rng(8)
+    m = rng.random((15, 17)) > 0.2
+    got = np.asarray(dk.erode(m))
+    for r in range(15):
+        for c in range(17):
+            win = [m[r + a, c + b] if 0 <= r + a < 15 and 0 <= c + b < 17 else False
+                   for a in (-1, 0, 1) for b in (-1, 0, 1)]
+            assert got[r, c] == all(win)

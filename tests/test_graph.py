@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csg
-from cpf_jax.kernels import graph as gk
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from cpf_jax.kernels import graph as gk
 
 FX = FY = 365.0
 
@@ -132,6 +133,13 @@ def test_connected_components_vmap_and_largest():
         assert len(np.unique(ref.ravel()[big[b].ravel()])) == 1
     empty = gk.largest_component(labels[0], np.zeros((40, 48), bool))
     assert not np.asarray(empty).any()
+    # per-component means over valid pixels
+    vals = rng.uniform(0, 100, (40, 48)).astype(np.float32)
+    got = np.asarray(jax.jit(gk.component_mean)(labels[0], vals, valid[0]))
+    for lab in np.unique(labels[0]):
+        sel = labels[0] == lab
+        want = vals[sel & valid[0]].mean() if (sel & valid[0]).any() else np.nan
+        np.testing.assert_allclose(got[sel], want, rtol=1e-5)
 
 
 def test_surface_graph_and_mesh_resolution():

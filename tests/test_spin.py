@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
 from cpf_jax.kernels import depth as dk
 from cpf_jax.kernels import graph as gk
 from cpf_jax.kernels import spin as sk

@@ -1,0 +1,193 @@
+"""The batched point filter on a small rendered figure with known body points."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cpf_jax.kernels import depth as dk
+from cpf_jax.points import (
+    PointFilterConfig,
+    PointInputs,
+    body_model,
+    build_point_filter,
+    default_point_params,
+    track_points,
+)
+from cpf_jax.types import Intrinsics
+
+H, W = 120, 128
+INTR = Intrinsics(365.0, 365.0, 63.5, 59.5)
+K = 0.3  # figure size relative to an adult
+
+
+def _joints(t: int):
+    """Figure joints (mm, camera frame) at frame t: walks right, swings its left arm."""
+    x0 = -150.0 + 9.0 * t
+    z0 = 2000.0
+    arm = 0.35 + 0.25 * np.sin(t / 3.0)
+    j = {"head": (0, -760), "neck": (0, -560), "pelvis": (0, 0), "ls": (-180, -480),
+         "rs": (180, -480), "lh": (-200 - 500 * np.sin(arm), -480 + 500 * np.cos(arm)),
+         "rh": (330, 0), "lf": (-150, 850), "rf": (160, 850)}
+    return {n: np.array([x0 + K * x, K * y, z0]) for n, (x, y) in j.items()}
+
+
+def render(t: int, seed: int = 0):
+    """Depth frame ``[H, W] uint16`` of the figure in front of a wall, its tight box and joints."""
+    rng = np.random.default_rng(seed + t)
+    j = _joints(t)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    fx, fy, cx, cy = INTR
+    d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    segs = [("head", "head", 100), ("neck", "pelvis", 150), ("ls", "rs", 70), ("ls", "lh", 45),
+            ("rs", "rh", 45), ("pelvis", "lf", 75), ("pelvis", "rf", 75)]
+    tt = np.full((H, W), np.inf)
+    for a, b, r in segs:
+        pa, pb, r = j[a], j[b], r * K
+        for s in np.linspace(0, 1, max(2, int(np.linalg.norm(pb - pa) / (0.25 * r)))):
+            c = pa + s * (pb - pa)
+            bb = d @ c
+            disc = bb * bb - (c @ c - r * r)
+            tt = np.minimum(tt, np.where(disc > 0, bb - np.sqrt(np.maximum(disc, 0)), np.inf))
+    person = np.isfinite(tt)
+    z = np.where(person, tt * d[..., 2], 3000.0) + rng.normal(0, 1.0, (H, W))
+    z[rng.random((H, W)) < 0.02] = 0
+    rr, cc = np.nonzero(person)
+    box = np.array([cc.min(), rr.min(), np.ptp(cc) + 1, np.ptp(rr) + 1], np.float32)
+    # joint projections in the box convention (pixel centre = index + 0.5)
+    uv = {n: np.array([fx * p[0] / p[2] + cx, fy * p[1] / p[2] + cy]) + 0.5 for n, p in j.items()}
+    return np.round(z).astype(np.uint16), box, person, uv, j
+
+
+T = 14
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    frames = [render(t) for t in range(T)]
+    inputs = PointInputs(jnp.asarray(np.stack([f[0] for f in frames])),
+                         jnp.asarray(np.stack([f[1] for f in frames])))
+    return frames, inputs
+
+
+BASE = PointFilterConfig(n_particles=48, window=(112, 64), intrinsics=INTR, patch_radius=16,
+                         spin_batch=48, threshold_depth_mm=None, floor_max_tilt_deg=None,
+                         normal_smoothing=1, seg_max_dz_mm=20.0, surface_max_dist_mm=30.0)
+
+
+def _start(frames):
+    # the left hand, slightly inside the hand, and the head
+    return jnp.asarray(np.stack([frames[0][3]["lh"], frames[0][3]["head"]]), jnp.float32)
+
+
+def test_config_validation():
+    with pytest.raises(ValueError):
+        PointFilterConfig(weighting="colour")
+    with pytest.raises(ValueError):
+        PointFilterConfig(references=("knee",))
+    with pytest.raises(ValueError):
+        PointFilterConfig(n_particles=0)
+
+
+def test_body_model_segments_the_figure(sequence):
+    frames, inputs = sequence
+    bm = jax.jit(lambda d, b: body_model(BASE, d, b))(inputs.depth[3], inputs.box[3])
+    rows, cols = np.asarray(bm.rows), np.asarray(bm.cols)
+    ok = (rows[:, None] >= 0) & (rows[:, None] < H) & (cols[None] >= 0) & (cols[None] < W)
+    person = frames[3][2][np.clip(rows, 0, H - 1)][:, np.clip(cols, 0, W - 1)] & ok
+    body = np.asarray(bm.body)
+    # the largest component is the figure, not the (larger) wall around it
+    assert (body & person).sum() / (body | person).sum() > 0.9
+    assert np.isfinite(np.asarray(bm.geodesic)[0][body]).mean() > 0.9
+    assert 3 <= float(bm.mesh_resolution) <= 10
+
+
+@pytest.mark.parametrize("weighting", ["geodesic", "combined"])
+def test_tracks_a_swinging_hand(sequence, weighting):
+    frames, inputs = sequence
+    cfg = dataclasses.replace(BASE, weighting=weighting)
+    filt = build_point_filter(cfg)
+    params = default_point_params()
+    run = jax.jit(lambda k, inp, p0: track_points(filt, params, k, inp, p0))
+    _, info = run(jax.random.PRNGKey(0), inputs, _start(frames))
+    gt = np.stack([np.stack([f[3]["lh"], f[3]["head"]]) for f in frames[1:]])
+    err = np.linalg.norm(np.asarray(info.mean) - gt, axis=-1)
+    assert np.all(np.isfinite(err))
+    assert np.median(err[:, 0]) < 3.0 and err[-1, 0] < 5.0  # hand, px
+    assert np.median(err[:, 1]) < 3.0  # head
+    # without the likelihood the cloud only follows the box: the hand is lost
+    assert not np.asarray(info.recovered).any()
+    gt3 = np.stack([np.stack([f[4]["lh"], f[4]["head"]]) for f in frames[1:]])
+    err3 = np.linalg.norm(np.asarray(info.mean3d) - gt3, axis=-1)
+    assert np.median(err3[:, 0]) < 40.0  # mm (the hand capsule's radius is 13.5 mm)
+
+
+def test_step_weights_only_body_particles_and_compiles_once(sequence):
+    frames, inputs = sequence
+    traces = []
+    cfg = dataclasses.replace(BASE, weighting="spin")
+    filt = build_point_filter(cfg)
+    params = default_point_params()
+
+    def counted(*a):
+        traces.append(1)
+        return filt.step(*a)
+
+    step = jax.jit(counted)
+    state = jax.jit(filt.init)(params, jax.random.PRNGKey(1), jax.tree_util.tree_map(
+        lambda x: x[0], inputs), _start(frames))
+    bmf = jax.jit(lambda d, b: body_model(cfg, d, b))
+    for t in range(1, 5):
+        frame = jax.tree_util.tree_map(lambda x, t=t: x[t], inputs)
+        state, info = step(params, jax.random.PRNGKey(t), state, frame)
+        assert info.mean.shape == (2, 2) and info.mean3d.shape == (2, 3)
+        assert np.all(np.asarray(info.ess) >= 1) and np.all(np.isfinite(np.asarray(info.mean3d)))
+        # after resampling every particle descends from an on-body particle
+        bm = bmf(frame.depth, frame.box)
+        ji = np.asarray(dk.frame_to_window(bm.window, state.particles[..., :2]))
+        r, c = np.floor(ji[..., 1]).astype(int), np.floor(ji[..., 0]).astype(int)
+        assert np.asarray(bm.body)[np.clip(r, 0, 111), np.clip(c, 0, 63)].all()
+        assert (r >= 0).all() and (r < 112).all() and (c >= 0).all() and (c < 64).all()
+    assert len(traces) == 1
+
+
+def test_recovery_when_every_particle_is_off_the_body(sequence):
+    frames, inputs = sequence
+    cfg = dataclasses.replace(BASE, weighting="geodesic", follow_box=False)
+    filt = build_point_filter(cfg)
+    params = default_point_params()
+    first = jax.tree_util.tree_map(lambda x: x[0], inputs)
+    state = jax.jit(filt.init)(params, jax.random.PRNGKey(0), first, _start(frames))
+    # the figure jumps 40 px to the right: the hand's cloud lands on the wall
+    z, box, person, uv, _ = render(0)
+    shifted = np.full_like(z, 3000)
+    shifted[:, 40:] = z[:, :-40]
+    box = box + np.array([40, 0, 0, 0], np.float32)
+    state, info = jax.jit(filt.step)(params, jax.random.PRNGKey(3), state,
+                                     PointInputs(jnp.asarray(shifted), jnp.asarray(box)))
+    rec = np.asarray(info.recovered)
+    assert rec[0]
+    bm = jax.jit(lambda d, b: body_model(cfg, d, b))(jnp.asarray(shifted), jnp.asarray(box))
+    ji = np.asarray(dk.frame_to_window(bm.window, info.mean))
+    r, c = int(ji[0, 1]), int(ji[0, 0])
+    body = np.asarray(bm.body)
+    # the recovered estimate sits on (or next to) the body, nearest to the old estimate
+    assert body[max(r - 2, 0):r + 3, max(c - 2, 0):c + 3].any()
+
+
+def test_vmap_over_keys(sequence):
+    frames, inputs = sequence
+    filt = build_point_filter(dataclasses.replace(BASE, weighting="geodesic"))
+    params = default_point_params()
+    short = jax.tree_util.tree_map(lambda x: x[:4], inputs)
+    run = jax.jit(jax.vmap(lambda k: track_points(filt, params, k, short, _start(frames))[1].mean))
+    means = np.asarray(run(jax.random.split(jax.random.PRNGKey(0), 3)))
+    assert means.shape == (3, 3, 2, 2)
+    assert not np.allclose(means[0], means[1])  # different keys, different clouds
+    gt = np.stack([np.stack([f[3]["lh"], f[3]["head"]]) for f in frames[1:4]])
+    assert np.all(np.linalg.norm(means - gt, axis=-1) < 6.0)
