@@ -112,14 +112,16 @@ class Pose(NamedTuple):
 def gait_parameters(speed: float) -> dict:
     """Speed-dependent gait amplitudes (radians, metres)."""
     v = float(np.clip(speed, 0.0, 2.0))
-    step = float(np.clip(0.35 + 0.30 * v, 0.3, 0.8))
+    # Step length ~0.5 m at 0.8 m/s (normal adult gait); box aspect ratios then stay
+    # within ~0.25-0.5 as in real pedestrian ground truth (OTB Crossing: 0.26-0.44).
+    step = float(np.clip(0.30 + 0.25 * v, 0.3, 0.7))
     return dict(
         step=step,
         hip=np.arcsin(min(step / (2 * (THIGH + SHIN)), 0.6)),
-        knee_swing=np.radians(25 + 25 * min(v, 1.5)),
+        knee_swing=np.radians(20 + 20 * min(v, 1.5)),
         knee_stance=np.radians(5.0),
-        arm=np.radians(6 + 15 * v),
-        elbow=np.radians(12 + 10 * v),
+        arm=np.radians(4 + 10 * v),
+        elbow=np.radians(10 + 8 * v),
         lean=np.radians(1.5 + 3.0 * v),
         sway=0.012,
     )

@@ -99,7 +99,7 @@ class ColourConfig:
     window: tuple[int, int] | None = None
     # Surround ring of the colour-contrast model: the initial box grown by this
     # fraction of its size on every side.
-    surround_margin: float = 0.25
+    surround_margin: float = 0.5
     # Horizontal stripes of the box with one histogram each (multi-part colour
     # model, Perez et al. 2002); 1 is the thesis's single histogram.
     parts: int = 2
@@ -143,6 +143,7 @@ class ColourParams(NamedTuple):
 
     sigma: Array  # likelihood width on the Bhattacharyya distance
     contrast_weight: Array  # beta of the colour-contrast term (0: the thesis's likelihood only)
+    contrast_threshold: Array  # P(object | bin) above which a pixel counts for the box
     tau: Array  # [8] noise scales of the motion model (thesis 3.13)
     motion: MotionParams  # hierarchical-sampling shape
     template_rate: Array  # forgetting rate of the optional template update, in [0, 1]
@@ -156,6 +157,7 @@ class ColourParams(NamedTuple):
 PARAM_CONSTRAINTS = ColourParams(
     sigma="softplus",
     contrast_weight="softplus",
+    contrast_threshold="sigmoid",
     tau="softplus",
     motion=MotionParams("sigmoid", "softplus", "softplus", "softplus", "softplus"),
     template_rate="sigmoid",
@@ -170,6 +172,7 @@ def default_colour_params() -> ColourParams:
     return ColourParams(
         sigma=f(0.1),
         contrast_weight=f(10.0),
+        contrast_threshold=f(0.4),
         tau=jnp.asarray(DEFAULT_TAU, jnp.float32),
         motion=default_motion_params(),
         template_rate=f(0.05),
@@ -229,15 +232,22 @@ def reference_histogram(
 
 
 def contrast_weights(
-    frame: Frame, box_xywh: Array, bins: tuple[int, int] = DEFAULT_BINS, margin: float = 0.25
+    frame: Frame,
+    box_xywh: Array,
+    bins: tuple[int, int] = DEFAULT_BINS,
+    margin: float = 0.5,
+    threshold: float | Array = 0.4,
 ) -> Array:
-    """Per-bin contrast weights ``[B] = P(object | bin) - 1/2`` from a box and its surround.
+    """Per-bin contrast weights ``[B] = P(object | bin) - threshold`` from a box and its surround.
 
-    ``P(object | b) = (n_in(b) + 1) / (n_in(b) + n_ring(b) + 2)`` with pixel counts
+    ``P(object | b) = n_in(b) / (n_in(b) + n_ring(b) + k)`` with pixel counts
     inside the box and in the ring around it (the box grown by ``margin`` of its
     size per side, minus the box), as in distractor-aware colour tracking
-    (Possegger et al., CVPR 2015). Bins seen only on the person score ``~ +1/2``,
-    bins of the surrounding background ``~ -1/2``, unseen bins 0.
+    (Possegger et al., CVPR 2015); ``k`` (1 % of the box's pixels) makes
+    colours seen in neither region count as background, so a box is never
+    rewarded for growing into colours the template has not seen. Bins typical
+    of the person score ``~ 1 - threshold``, the surrounding background
+    ``~ -threshold``; the sum of a box's weights peaks at the person's extent.
     """
     idx = hs_bin_index(frame.colour, *bins)
     box = jnp.asarray(box_xywh, jnp.float32)
@@ -246,7 +256,8 @@ def contrast_weights(
     rects = box_ops.xywh_to_rect(jnp.stack([box, grown]))
     h = box_histograms(idx, rects, bins[0] * bins[1])
     inside, ring = h[0], jnp.maximum(h[1] - h[0], 0.0)
-    return (inside + 1.0) / (inside + ring + 2.0) - 0.5
+    k = 0.01 * jnp.maximum(jnp.sum(inside), 1.0)
+    return inside / (inside + ring + k) - threshold
 
 
 def _to_xywh(particles: Array) -> Array:
@@ -288,7 +299,9 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         box = jnp.asarray(box_xywh, jnp.float32)
         height, width = frame.colour.shape[:2]
         ref = reference_histogram(frame, box, config.bins, config.parts)
-        contrast = contrast_weights(frame, box, config.bins, config.surround_margin)
+        contrast = contrast_weights(
+            frame, box, config.bins, config.surround_margin, params.contrast_threshold
+        )
         c = box_ops.xywh_to_cxcywh(box)
         one = jnp.array([c[0], c[1], 0.0, 0.0, c[2], c[3], 0.0, 0.0], jnp.float32)
         particles = jnp.tile(one, (n, 1))
