@@ -158,7 +158,7 @@ def test_surface_graph_and_mesh_resolution():
                     assert abs(w[k, r, c] - dist) <= 0.5 / gk.UNITS_PER_MM + 1e-5
                 elif dist > 15.0 + 1e-3:
                     assert np.isinf(w[k, r, c])
-    # weights sit on the 1/1024 mm grid the relaxation uses
+    # weights sit on the fixed-point grid the relaxation uses
     fin = np.isfinite(w)
     assert np.all(w[fin] * gk.UNITS_PER_MM == np.round(w[fin] * gk.UNITS_PER_MM))
     assert abs(float(gk.mesh_resolution(w)) - w[fin].mean()) < 1e-3
@@ -257,6 +257,8 @@ def test_geodesic_beyond_max_distance_is_unreachable():
     d = np.asarray(_geo(w, src)[0])
     ref = _dijkstra(w, 0).reshape(4, 200)
     assert np.array_equal(np.isfinite(d), ref <= gk.MAX_DISTANCE_MM)
+    with pytest.raises(ValueError):
+        gk.geodesic_distances(np.full((4, 8, 251), np.inf, np.float32), np.zeros((8, 251), bool))
 
 
 def test_geodesic_batched_sources_vmap_and_multi_source():
