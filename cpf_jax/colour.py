@@ -103,6 +103,9 @@ class ColourConfig:
     # Horizontal stripes of the box with one histogram each (multi-part colour
     # model, Perez et al. 2002); 1 is the thesis's single histogram.
     parts: int = 2
+    # Width of the centre-surround ring scored against each particle's box, as a
+    # fraction of the box size per side (0: no ring).
+    ring_margin: float = 0.15
 
     def __post_init__(self) -> None:
         if self.n_particles < 1:
@@ -133,7 +136,7 @@ class ColourConfig:
         (a person walking close, a lost target's global search) still gets
         exact distances through the kernel's whole-frame fallback, only slower.
         """
-        w, h = (float(v) * growth for v in box_wh)
+        w, h = (float(v) * growth * (1 + 2 * self.ring_margin) for v in box_wh)
         window = suggest_window((w, h), 10.0, (int(frame_hw[0]), int(frame_hw[1])))
         return dataclasses.replace(self, window=window)
 
@@ -348,16 +351,32 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         # its scale does not change as the person comes closer.
         area = jnp.maximum(state.estimate[2] * state.estimate[3], 1.0)
 
-        def distance_and_contrast(counts: Array) -> Array:
-            # counts [c, K, B] -> [c, 2]: mean squared part distance, contrast score
-            total = jnp.sum(counts, axis=-1)
-            norm = jax.lax.rsqrt(jnp.maximum(total, 1.0))
-            bc = jnp.sum(jnp.sqrt(counts) * sqrt_q, axis=-1) * norm
-            d2 = jnp.where(total > 0, jnp.clip(1.0 - bc, 0.0, 1.0), 1.0)
-            score = jnp.sum(counts, axis=-2) @ state.contrast / area
-            return jnp.stack([jnp.mean(d2, axis=-1), score], axis=-1)
+        k = config.parts
+        positive = jnp.maximum(state.contrast, 0.0)
 
-        rects = box_ops.xywh_to_rect(box_parts(_to_xywh(particles), config.parts))
+        def distance_and_contrast(counts: Array) -> Array:
+            # counts [c, K(+1), B] -> [c, 2]: mean squared part distance, contrast score
+            parts = counts[:, :k]
+            total = jnp.sum(parts, axis=-1)
+            norm = jax.lax.rsqrt(jnp.maximum(total, 1.0))
+            bc = jnp.sum(jnp.sqrt(parts) * sqrt_q, axis=-1) * norm
+            d2 = jnp.where(total > 0, jnp.clip(1.0 - bc, 0.0, 1.0), 1.0)
+            inside = jnp.sum(parts, axis=-2)
+            score = inside @ state.contrast
+            if config.ring_margin > 0:
+                # Centre-surround: person-coloured pixels just outside the box
+                # count against it, so a box smaller than the person loses.
+                ring = jnp.maximum(counts[:, k] - inside, 0.0)
+                score = score - ring @ positive
+            return jnp.stack([jnp.mean(d2, axis=-1), score / area], axis=-1)
+
+        boxes_xywh = _to_xywh(particles)
+        rects = box_ops.xywh_to_rect(box_parts(boxes_xywh, config.parts))
+        if config.ring_margin > 0:
+            m = config.ring_margin
+            grow = jnp.array([-m, -m, 2 * m, 2 * m], jnp.float32)
+            grown = boxes_xywh + grow * boxes_xywh[:, jnp.array([2, 3, 2, 3])]
+            rects = jnp.concatenate([rects, box_ops.xywh_to_rect(grown)[:, None]], axis=1)
         out = rect_reduce(
             bin_idx, rects, distance_and_contrast, n_bins=n_bins, window=config.window
         )

@@ -147,7 +147,10 @@ class ScenarioSpec:
     colour, used for matched clutter and the distractor panel), ``distractor`` (a large
     shirt-coloured panel just behind the walking lane), ``colour_noise``, ``illumination``
     (``"none"``, ``"drift"`` slow gain and colour-temperature drift, ``"switch"`` a light
-    goes off half-way) with ``illumination_strength``, ``distance_m``.
+    goes off half-way) with ``illumination_strength``, ``distance_m``, ``backdrop``
+    (``"low"``: behind the walking path only furniture up to ``backdrop_height_m`` and no
+    posters or wall shelves, so the upper body passes in front of the wall; ``"full"``:
+    clutter anywhere, as in ``distractor_pass``).
     """
 
     path: str = "pace"
@@ -175,6 +178,8 @@ class ScenarioSpec:
     room_half_width_m: float = 3.2
     depth_noise_scale: float = 1.0
     max_range_mm: float = 4500.0
+    backdrop: str = "low"
+    backdrop_height_m: float = 0.9
     occluders: tuple[Occluder, ...] = ()
     shirt_change: tuple[int, RGB] | None = None
 
@@ -197,7 +202,11 @@ SCENARIOS: dict[str, ScenarioSpec] = {
         clothing=Clothing(shirt=(215, 150, 40), trousers=(50, 50, 60)),
     ),
     "distractor_pass": ScenarioSpec(
-        distractor=True, clutter=10, clutter_match=0.4, distractor_similarity=0.9
+        distractor=True,
+        clutter=10,
+        clutter_match=0.4,
+        distractor_similarity=0.9,
+        backdrop="full",
     ),
     "light_switch": ScenarioSpec(illumination="switch"),
 }
@@ -520,7 +529,10 @@ def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep_out)
         plain = furniture[rng.integers(len(furniture))]
         return (similar if matched else plain), matched
 
-    def allowed(cx, cz, w, d):
+    def behind_path(a_lo, a_hi, za):
+        return za >= z1 - 0.1 and a_hi > amin and a_lo < amax
+
+    def allowed(cx, cz, w, d, top=0.0):
         xa, xb, za, zb = cx - w / 2, cx + w / 2, cz - d / 2, cz + d / 2
         if xa < -W2 or xb > W2 or zb > D or za < 0.8:
             return False
@@ -532,6 +544,8 @@ def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep_out)
             return False  # out of view: pointless
         if za < z1 + 0.1 and a_hi > amin and a_lo < amax:
             return False  # would hide the person
+        if spec.backdrop == "low" and top > spec.backdrop_height_m and behind_path(a_lo, a_hi, za):
+            return False  # tall clutter right behind the walking path
         return True
 
     # Posters on the back wall (no depth of their own: 1 cm thick).
@@ -539,6 +553,13 @@ def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep_out)
     for _ in range(1 + spec.clutter // 3):
         w, h = rng.uniform(0.4, 1.0), rng.uniform(0.5, 1.0)
         cx = rng.uniform(-W2 + w, W2 - w)
+        if spec.backdrop == "low":
+            for _attempt in range(30):
+                if not behind_path((cx - w / 2) / D, (cx + w / 2) / D, D):
+                    break
+                cx = rng.uniform(-W2 + w, W2 - w)
+            else:
+                continue
         pal = tuple(palette_pool[i] for i in rng.choice(len(palette_pool), 4, replace=False))
         similar = _similar_colour(rng, cl.shirt, spec.distractor_similarity)
         if rng.uniform() < spec.clutter_match:  # (same draws whatever the knobs: same layout)
@@ -571,7 +592,8 @@ def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep_out)
             )
             cz = D - d / 2 - 0.01 if against_wall else rng.uniform(1.0, D - d / 2)
             cx = rng.uniform(-W2 + w / 2, W2 - w / 2)
-            if allowed(cx, cz, w, d):
+            top = 2.5 if kind == "wall_shelf" else h
+            if allowed(cx, cz, w, d, top):
                 break
         else:
             continue
