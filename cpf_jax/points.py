@@ -121,6 +121,10 @@ class PointFilterConfig:
     # Only components at least this far in front of the box's background (median
     # depth of the ROI border) may be the body; None: the thesis's plain largest.
     background_margin_mm: float | None = 250.0
+    # None: the body is one component (thesis). A fraction f: the union of the
+    # components with at least f times the largest one's pixels (use with a
+    # foreground mask, which has removed the background already).
+    min_component_fraction: float | None = None
     patch_radius: int = 32  # window pixels visited per spin image (see kernels.spin)
     spin_batch: int = 32  # spin images computed per lax.map step
     follow_box: bool = True
@@ -142,6 +146,8 @@ class PointFilterConfig:
         if self.resampler not in rs.SCHEMES:
             raise ValueError(f"resampler must be one of {tuple(rs.SCHEMES)}, "
                              f"got {self.resampler!r}")
+        if self.min_component_fraction is not None and not 0 < self.min_component_fraction <= 1:
+            raise ValueError("min_component_fraction must be in (0, 1] or None")
         if min(self.window) < 8:
             raise ValueError(f"window too small: {self.window}")
 
@@ -287,18 +293,34 @@ def body_model(config: PointFilterConfig, depth: Array, box: Array,
     eligible = valid
     if config.background_margin_mm is not None:
         # The thesis keeps the largest component. In a tight box around a thin
-        # (side-on) person the wall behind can be larger, so only components whose
-        # mean depth is in front of the ROI border's median depth (the box's
-        # background) by the margin compete; if none is, all do.
-        h, w_ = shape
-        ring = jnp.zeros(shape, bool).at[0].set(True).at[h - 1].set(True)
-        ring = ring.at[:, 0].set(True).at[:, w_ - 1].set(True)
-        ring_roi = ring | (roi & ~dk.erode(roi))
-        z_bg = jnp.nanmedian(jnp.where(ring_roi & valid, d, jnp.nan))
+        # (side-on) person the wall behind can be larger, so components whose mean
+        # depth is not in front of the box's background by the margin are dropped.
+        # The background is the median depth of the ROI's border in its upper 60 %
+        # (the floor fills the bottom rows). If the biggest remaining component is
+        # much smaller than the biggest overall (< 20 %), the rule is not trusted
+        # and the thesis's plain largest component is used.
+        h = shape[0]
+        edge = roi & ~dk.erode(roi)
+        rows_in = jnp.any(roi, axis=1)
+        r0 = jnp.argmax(rows_in)
+        r1 = h - 1 - jnp.argmax(rows_in[::-1])
+        upper = (jnp.arange(h) < r0 + 0.6 * (r1 - r0))[:, None]
+        z_bg = jnp.nanmedian(jnp.where(edge & upper & valid, d, jnp.nan))
         zc = gk.component_mean(labels, d, valid)
         front = valid & (zc < z_bg - config.background_margin_mm)
-        eligible = jnp.where(jnp.any(front) & jnp.isfinite(z_bg), front, valid)
-    body = gk.largest_component(labels, eligible)
+        size = _component_sizes(labels, valid)
+        big_all = jnp.max(jnp.where(valid, size, 0.0))
+        big_front = jnp.max(jnp.where(front, size, 0.0))
+        trust = jnp.isfinite(z_bg) & (big_front >= 0.2 * big_all)
+        eligible = jnp.where(trust, front, valid)
+    if config.min_component_fraction is None:
+        body = gk.largest_component(labels, eligible)
+    else:
+        # Union of the components with at least this fraction of the largest one's
+        # pixels: with a foreground mask the person is every sizeable component
+        # (side-on, the near arm and leg are separated from the trunk by depth jumps).
+        size = _component_sizes(labels, eligible)
+        body = eligible & (size >= config.min_component_fraction * jnp.max(size))
     w = gk.surface_graph(pts, body, config.surface_max_dist_mm * tscale)
     normals, nvalid = dk.vertex_normals(pts, w, config.normal_smoothing)
     mres = gk.mesh_resolution(w)
@@ -323,6 +345,13 @@ def body_model(config: PointFilterConfig, depth: Array, box: Array,
         geo, sweeps = jnp.zeros((len(config.references),) + shape, jnp.float32), jnp.int32(0)
     return BodyModel(win, rows, cols, d, body, pts, normals, body & nvalid, w, mres, ref_pix, geo,
                      sweeps)
+
+
+def _component_sizes(labels: Array, valid: Array) -> Array:
+    """Per pixel, the number of valid pixels in its component."""
+    flat = labels.reshape(-1)
+    cnt = jnp.zeros(flat.size, jnp.float32).at[flat].add(valid.reshape(-1).astype(jnp.float32))
+    return cnt[flat].reshape(labels.shape)
 
 
 def _window_pixels(bm: BodyModel, xy: Array, shape: tuple[int, int]) -> tuple[Array, Array]:

@@ -46,6 +46,7 @@ __all__ = [
     "head_neck_split",
     "nearest_true",
     "erode",
+    "foreground_mask",
 ]
 
 # The 8 neighbours in angular order around a pixel (d_row, d_col): E, SE, S, SW, W, NW, N, NE.
@@ -375,3 +376,16 @@ def erode(mask: Array) -> Array:
     for dr, dc in RING:
         out = out & neighbour(m, dr, dc, False)
     return out
+
+
+def foreground_mask(depth: Array, background: Array, min_diff_mm: float = 100.0,
+                    rel_diff: float = 0.03) -> Array:
+    """Background subtraction in depth (P 2.3): nearer than the background by ``max(min, rel * z)``.
+
+    depth, background: ``[H, W]`` mm, 0 = missing. Pixels without a background
+    value count as foreground when their depth is valid (nothing to compare to).
+    """
+    z = jnp.asarray(depth, jnp.float32)
+    bg = jnp.asarray(background, jnp.float32)
+    near = z < bg - jnp.maximum(min_diff_mm, rel_diff * bg)
+    return (z > 0) & ((bg <= 0) | near)

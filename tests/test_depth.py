@@ -246,3 +246,10 @@ def test_erode_matches_loop():
             win = [m[r + a, c + b] if 0 <= r + a < 15 and 0 <= c + b < 17 else False
                    for a in (-1, 0, 1) for b in (-1, 0, 1)]
             assert got[r, c] == all(win)
+
+
+def test_foreground_mask():
+    z = np.array([[1000, 2900, 0, 1500], [3000, 2000, 2500, 0]], np.float32)
+    bg = np.array([[3000, 3000, 3000, 0], [3000, 3000, 2560, 0]], np.float32)
+    fg = np.asarray(dk.foreground_mask(z, bg, 100.0, 0.03))
+    assert fg.tolist() == [[True, False, False, True], [False, True, False, False]]
