@@ -22,25 +22,36 @@ sits at ``(u + 0.5, v + 0.5)``). 3D estimates are camera millimetres.
 One frame (``step``):
 
 1. Pre-processing in a ``config.window`` window cut around ``inputs.box``
-   (``cpf_jax.kernels.depth``): hole filling (thesis 4.1.1), segmentation as
-   the largest connected component of the ``|dz| < seg_max_dz`` pixel graph
-   (4.1.2), back-projection, surface graph with ``<= surface_max_dist`` edges
-   (4.1.4), vertex normals (4.2.1) and the mesh resolution. Both thresholds
-   are per frame pixel; when the window is resampled (``s`` frame pixels per
-   window pixel) they are multiplied by ``s`` because neighbours are ``s``
-   times further apart.
+   (``cpf_jax.kernels.depth``): hole filling (thesis 4.1.1); optional floor
+   removal (pixels whose normal is within ``floor_max_tilt_deg`` of ``up``);
+   segmentation (4.1.2) as the largest connected component of the
+   ``|dz| < seg_max_dz`` pixel graph among the components in front of the
+   box's background (``background_margin_mm``; the thesis's plain largest
+   component picks the wall behind a side-on person), or the union of the
+   sizeable components inside an optional foreground mask
+   (``min_component_fraction``); back-projection, surface graph with
+   ``<= surface_max_dist`` edges (4.1.4), vertex normals (4.2.1) and the mesh
+   resolution; geodesic distances from the reference points. Thresholds are
+   per frame pixel at ``threshold_depth_mm`` and scale with the pixel pitch
+   (depth x window scale / f): Kinect noise and neighbour spacing grow with
+   depth, and the thesis's 10 / 15 mm cut a person at 3-4 m into pieces.
 2. Prediction, state ``{x, y, x', y'}`` per particle (thesis 4.2.3):
    ``x' <- decay x' + n_v``, ``x <- x + x' + n_x``. With ``follow_box`` the
    particle also moves with the box: ``x`` is first mapped by the similarity
    transform that takes the previous box onto the current one (the box is
    the cascade's layer-1 output), so the velocity only models motion on the body.
-3. Weights, in log form (thesis Alg. 2 and 3, combination: 6.2):
+3. Weights, in log form (thesis Alg. 2 and 3, combination: 6.2), plus an
+   optional depth-consistency term ``-(z - z_pred)^2 / (2 depth_sigma^2)``
+   (``z`` the surface depth under the particle, ``z_pred`` the last
+   estimate's depth scaled by the box-height ratio), which keeps a hand's
+   cloud from sliding onto the thigh behind it:
    * ``spin``: ``C / spin_temperature`` with ``C`` the similarity of the
      particle's spin image to the point's reference image (eq. 4.7;
      ``lambda`` = half the median overlap over the point's particles);
    * ``geodesic``: ``-(g - g0)^2 / (2 geo_sigma^2)`` with ``g`` the geodesic
-     distance from the reference point (head centroid, or body centroid) to
-     the particle's pixel and ``g0`` the initial one;
+     distance from the reference point (head centroid by default; body
+     centroid or both as options) to the particle's pixel and ``g0`` the
+     initial one; unreachable pixels get ``-inf``;
    * ``combined``: the sum (a product of the two likelihoods).
    Particles off the segmented body get ``-inf`` (masked, thesis 4.4).
 4. Recovery: if every particle of a point is off the body (or has no valid
