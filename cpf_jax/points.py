@@ -202,7 +202,7 @@ def default_point_params() -> PointParams:
         pos_noise=f(2.0),
         vel_noise=f(1.0),
         velocity_decay=f(0.5),
-        spin_temperature=f(0.5),
+        spin_temperature=f(0.1),  # C spans about 0-3: 0.5 left the weights nearly flat
         geo_sigma=f(40.0),
         depth_sigma=f(40.0),
         recovery_spread=f(2.0),
