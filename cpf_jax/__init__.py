@@ -20,7 +20,7 @@ from cpf_jax.colour import (
     track,
     track_boxes,
 )
-from cpf_jax.dynamics import DEFAULT_TAU, MODELS, MotionParams, propagate
+from cpf_jax.dynamics import DEFAULT_TAU, MODELS, THESIS_TAU, MotionParams, propagate
 from cpf_jax.errors import CameraUnavailable, CpfJaxError, SourceError
 from cpf_jax.io import open_source
 from cpf_jax.metrics import summarise
@@ -39,6 +39,7 @@ __all__ = [
     "track",
     "track_boxes",
     "DEFAULT_TAU",
+    "THESIS_TAU",
     "MODELS",
     "MotionParams",
     "propagate",

@@ -39,14 +39,19 @@ def parse_box(text: str) -> np.ndarray:
     return np.asarray(vals, np.float32)
 
 
-def parse_bins(text: str) -> tuple[int, int]:
+def parse_bins(text: str) -> tuple[int, ...]:
+    """``"HxS"`` or ``"HxSxV"`` (V: value bins for achromatic pixels) -> tuple."""
     try:
-        h, s = (int(v) for v in text.lower().split("x"))
+        vals = tuple(int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise UsageError(f"--bins expects HxS such as 8x8, got {text!r}") from None
-    if h < 1 or s < 1 or h > 180 or s > 256:
-        raise UsageError(f"--bins out of range (1..180 x 1..256): {text!r}")
-    return h, s
+        vals = ()
+    if len(vals) not in (2, 3):
+        raise UsageError(f"--bins expects HxS or HxSxV such as 8x8x8, got {text!r}")
+    h, s = vals[:2]
+    v = vals[2] if len(vals) == 3 else 0
+    if not (1 <= h <= 180 and 1 <= s <= 256 and 0 <= v <= 256):
+        raise UsageError(f"--bins out of range (1..180 x 1..256 x 0..256): {text!r}")
+    return vals
 
 
 def check_box(box: np.ndarray, size: tuple[int, int], where: str) -> None:
@@ -87,8 +92,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--estimator", choices=("mean", "map", "robust"), default="mean")
     p.add_argument("--resampler", choices=tuple(SCHEMES), default="systematic")
-    p.add_argument("--sigma", type=float, default=None, help="likelihood width (default 0.1)")
-    p.add_argument("--bins", default=None, help="hue x saturation bins, e.g. 8x8")
+    p.add_argument("--sigma", type=float, default=None, help="likelihood width (default 0.33)")
+    p.add_argument(
+        "--bins", default=None, help="hue x saturation [x value] bins: 8x8x8 (default) or 8x8"
+    )
     p.add_argument("--template-update", action="store_true", help="slowly adapt the template")
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -162,7 +169,7 @@ def _run(args: argparse.Namespace) -> int:
         resampler=args.resampler,
         template_update=args.template_update,
         **config_kw,
-    )
+    ).with_window((float(box[2]), float(box[3])), (source.size[1], source.size[0]))
     params = default_colour_params()
     if args.sigma is not None:
         params = params._replace(sigma=jnp.float32(args.sigma))

@@ -51,7 +51,7 @@ from jax import Array
 from cpf_jax.dynamics import DEFAULT_TAU, MODELS, MotionParams, default_motion_params, propagate
 from cpf_jax.kernels import boxes as box_ops
 from cpf_jax.kernels import resample as rs
-from cpf_jax.kernels.color import hs_bin_index
+from cpf_jax.kernels.color import hsv_bin_index
 from cpf_jax.kernels.histogram import (
     DEFAULT_BINS,
     bhattacharyya,
@@ -78,13 +78,29 @@ __all__ = [
 
 ESTIMATORS = ("mean", "map", "robust")
 
+# Default colour model: 8 x 8 H-S bins for chromatic pixels + 8 value bins for
+# black/grey/white ones (72 bins). (8, 8) is the thesis's pure H-S histogram.
+COLOUR_BINS = (*DEFAULT_BINS, 8)
+
+
+def n_bins_of(bins: tuple[int, ...]) -> int:
+    """Histogram length of a ``(h, s)`` or ``(h, s, v)`` bin spec."""
+    return bins[0] * bins[1] + (bins[2] if len(bins) > 2 else 0)
+
+
+def bin_index(colour: Array, bins: tuple[int, ...]) -> Array:
+    """``[H, W] int32`` bin of every pixel for a ``(h, s)`` or ``(h, s, v)`` bin spec."""
+    return hsv_bin_index(colour, bins[0], bins[1], bins[2] if len(bins) > 2 else 0)
+
 
 @dataclasses.dataclass(frozen=True)
 class ColourConfig:
     """Static, hashable settings (changing one recompiles)."""
 
     n_particles: int = 100
-    bins: tuple[int, int] = DEFAULT_BINS
+    # (hue, saturation) bins, or (hue, saturation, value) with value bins for the
+    # achromatic pixels (Perez et al. 2002; see kernels.color.hsv_bin_index).
+    bins: tuple[int, ...] = COLOUR_BINS
     model: str = "ar1"  # one of cpf_jax.dynamics.MODELS
     hierarchical: bool = True
     estimator: str = "mean"  # "mean" | "map" | "robust"
@@ -106,6 +122,12 @@ class ColourConfig:
     # Width of the centre-surround ring scored against each particle's box, as a
     # fraction of the box size per side (0: no ring).
     ring_margin: float = 0.15
+    # tau is given for a box of this height (px); every particle's noise is scaled
+    # by its height / tau_height, so small and large targets diffuse alike
+    # (None: tau in absolute pixels, as in the thesis).
+    tau_height: float | None = 200.0
+    # Log-normal prior on the box's width/height (params.aspect_mean, aspect_sigma).
+    aspect_prior: bool = True
 
     def __post_init__(self) -> None:
         if self.n_particles < 1:
@@ -119,12 +141,12 @@ class ColourConfig:
             raise ValueError(f"resampler must be one of {names}, got {self.resampler!r}")
         if self.parts < 1:
             raise ValueError(f"parts must be >= 1, got {self.parts}")
-        if min(self.bins) < 1:
+        if len(self.bins) not in (2, 3) or min(self.bins[:2]) < 1 or min(self.bins) < 0:
             raise ValueError(f"bins must be positive, got {self.bins}")
 
     @property
     def n_bins(self) -> int:
-        return self.bins[0] * self.bins[1]
+        return n_bins_of(self.bins)
 
     def with_window(
         self, box_wh: tuple[float, float], frame_hw: tuple[int, int], growth: float = 1.5
@@ -147,6 +169,8 @@ class ColourParams(NamedTuple):
     sigma: Array  # likelihood width on the Bhattacharyya distance
     contrast_weight: Array  # beta of the colour-contrast term (0: the thesis's likelihood only)
     contrast_threshold: Array  # P(object | bin) above which a pixel counts for the box
+    aspect_mean: Array  # prior mean of a person box's width / height
+    aspect_sigma: Array  # prior std of log(width / height) (large: no prior)
     tau: Array  # [8] noise scales of the motion model (thesis 3.13)
     motion: MotionParams  # hierarchical-sampling shape
     template_rate: Array  # forgetting rate of the optional template update, in [0, 1]
@@ -161,6 +185,8 @@ PARAM_CONSTRAINTS = ColourParams(
     sigma="softplus",
     contrast_weight="softplus",
     contrast_threshold="sigmoid",
+    aspect_mean="softplus",
+    aspect_sigma="softplus",
     tau="softplus",
     motion=MotionParams("sigmoid", "softplus", "softplus", "softplus", "softplus"),
     template_rate="sigmoid",
@@ -173,9 +199,11 @@ PARAM_CONSTRAINTS = ColourParams(
 def default_colour_params() -> ColourParams:
     f = jnp.float32
     return ColourParams(
-        sigma=f(0.1),
-        contrast_weight=f(10.0),
-        contrast_threshold=f(0.4),
+        sigma=f(0.33),
+        contrast_weight=f(28.0),
+        contrast_threshold=f(0.25),
+        aspect_mean=f(0.41),
+        aspect_sigma=f(0.3),
         tau=jnp.asarray(DEFAULT_TAU, jnp.float32),
         motion=default_motion_params(),
         template_rate=f(0.05),
@@ -226,18 +254,18 @@ def _normalise(h: Array) -> Array:
 
 
 def reference_histogram(
-    frame: Frame, box_xywh: Array, bins: tuple[int, int] = DEFAULT_BINS, parts: int = 1
+    frame: Frame, box_xywh: Array, bins: tuple[int, ...] = COLOUR_BINS, parts: int = 1
 ) -> Array:
     """Normalised H-S histograms ``[parts, B]`` of the stripes of an ``(x, y, w, h)`` box."""
-    idx = hs_bin_index(frame.colour, *bins)
+    idx = bin_index(frame.colour, bins)
     rects = box_ops.xywh_to_rect(box_parts(box_xywh, parts))
-    return _normalise(box_histograms(idx, rects, bins[0] * bins[1]))
+    return _normalise(box_histograms(idx, rects, n_bins_of(bins)))
 
 
 def contrast_weights(
     frame: Frame,
     box_xywh: Array,
-    bins: tuple[int, int] = DEFAULT_BINS,
+    bins: tuple[int, ...] = COLOUR_BINS,
     margin: float = 0.5,
     threshold: float | Array = 0.4,
 ) -> Array:
@@ -252,12 +280,12 @@ def contrast_weights(
     of the person score ``~ 1 - threshold``, the surrounding background
     ``~ -threshold``; the sum of a box's weights peaks at the person's extent.
     """
-    idx = hs_bin_index(frame.colour, *bins)
+    idx = bin_index(frame.colour, bins)
     box = jnp.asarray(box_xywh, jnp.float32)
     grow = jnp.array([-margin, -margin, 2 * margin, 2 * margin], jnp.float32)
     grown = box + grow * box[jnp.array([2, 3, 2, 3])]
     rects = box_ops.xywh_to_rect(jnp.stack([box, grown]))
-    h = box_histograms(idx, rects, bins[0] * bins[1])
+    h = box_histograms(idx, rects, n_bins_of(bins))
     inside, ring = h[0], jnp.maximum(h[1] - h[0], 0.0)
     k = 0.01 * jnp.maximum(jnp.sum(inside), 1.0)
     return inside / (inside + ring + k) - threshold
@@ -335,6 +363,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             params.motion,
             model=config.model,
             hierarchical=config.hierarchical,
+            scale=None if config.tau_height is None else state.particles[:, 5] / config.tau_height,
         )
         if config.recovery_fraction > 0:
             # On a lost target, re-draw some particles uniformly over the frame.
@@ -345,7 +374,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             particles = jnp.where((redraw & state.lost)[:, None], fresh, particles)
         particles = clamp(particles, width, height)
 
-        bin_idx = hs_bin_index(frame.colour, *config.bins)
+        bin_idx = bin_index(frame.colour, config.bins)
         sqrt_q = jnp.sqrt(state.reference)  # [K, B]
         # Normalise the contrast score by the previous estimate's area, so that
         # its scale does not change as the person comes closer.
@@ -383,6 +412,12 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         d2, score = out[:, 0], out[:, 1]
         d = jnp.sqrt(d2)
         log_lik = -d2 / (2.0 * params.sigma * params.sigma) + params.contrast_weight * score
+        if config.aspect_prior:
+            # Person boxes keep a typical shape (pedestrian benchmarks standardise
+            # on width/height = 0.41): a log-normal prior on the aspect ratio
+            # stops the box collapsing onto the torso or spreading sideways.
+            log_aspect = jnp.log(particles[:, 4] / particles[:, 5]) - jnp.log(params.aspect_mean)
+            log_lik = log_lik - 0.5 * (log_aspect / params.aspect_sigma) ** 2
         log_lik = jnp.where(jnp.isfinite(log_lik), log_lik, -jnp.inf)
         invalid = rs.all_weights_invalid(state.log_weights + log_lik)
         lw = rs.normalise_log_weights(state.log_weights + log_lik)

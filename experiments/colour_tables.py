@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params, track_boxes
-from cpf_jax.dynamics import DEFAULT_TAU
+from cpf_jax.dynamics import THESIS_TAU
 from cpf_jax.metrics import summarise
 from cpf_jax.synthetic import make_sequence
 from cpf_jax.types import Frame
@@ -65,7 +65,7 @@ MODELS = {
 }
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _sequence(name: str, seed: int):
     seq = make_sequence(name, seed=seed)
     frames = Frame(jnp.asarray(seq.colour), jnp.asarray(seq.depth))
@@ -177,7 +177,8 @@ def main(argv=None) -> dict:
     res["table_3_1"] = {}
     per_n = {}
     for n in ns:
-        mean, per = mean_over(WALKING, seeds, keys, dataclasses.replace(base, n_particles=n), params)
+        cfg = dataclasses.replace(base, n_particles=n)
+        mean, per = mean_over(WALKING, seeds, keys, cfg, params)
         res["table_3_1"][str(n)] = mean
         per_n[n] = per
         print(f"N={n}: {mean:.1f} % {per}", flush=True)
@@ -217,7 +218,7 @@ def main(argv=None) -> dict:
     thesis_cfg = dataclasses.replace(n100, parts=1, ring_margin=0.0, hierarchical=False)
     thesis_p = params._replace(
         contrast_weight=jnp.float32(0.0), sigma=jnp.float32(1.0),
-        tau=jnp.asarray(DEFAULT_TAU, jnp.float32),
+        tau=jnp.asarray(THESIS_TAU, jnp.float32),
     )
     res["likelihood_ablation"] = {
         "thesis (1 histogram, sigma=1, thesis tau)": mean_over(

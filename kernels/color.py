@@ -29,7 +29,19 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-__all__ = ["rgb_to_hsv_u8", "hs_bin_index", "hs_bin_luts", "rgb_to_hsv_float"]
+__all__ = [
+    "rgb_to_hsv_u8",
+    "hs_bin_index",
+    "hsv_bin_index",
+    "hs_bin_luts",
+    "rgb_to_hsv_float",
+    "ACHROMATIC_S_MIN",
+    "ACHROMATIC_V_MIN",
+]
+
+# Perez et al. (ECCV 2002): pixels with S < 0.1 or V < 0.2 have no reliable hue.
+ACHROMATIC_S_MIN = 26  # 0.1 * 255, rounded
+ACHROMATIC_V_MIN = 51  # 0.2 * 255
 
 _HSV_SHIFT = 12
 _HALF = 1 << (_HSV_SHIFT - 1)
@@ -116,6 +128,35 @@ def hs_bin_index(colour: Array, h_bins: int, s_bins: int) -> Array:
     return _lut_or_formula(h, hs_bin_luts(h_bins, s_bins)[0], h_bins, 180) * s_bins + (
         _lut_or_formula(s, hs_bin_luts(h_bins, s_bins)[1], s_bins, 256)
     )
+
+
+def hsv_bin_index(
+    colour: Array,
+    h_bins: int,
+    s_bins: int,
+    v_bins: int,
+    s_min: int = ACHROMATIC_S_MIN,
+    v_min: int = ACHROMATIC_V_MIN,
+) -> Array:
+    """H-S bins for chromatic pixels plus ``v_bins`` value bins for achromatic ones.
+
+    The colour model of Perez et al. (ECCV 2002): a pixel with ``S >= s_min``
+    and ``V >= v_min`` (uint8 OpenCV HSV) gets its H-S bin
+    ``h_bin * s_bins + s_bin``; any other pixel (black, grey, white, whose hue
+    is noise) gets ``h_bins * s_bins + floor(V * v_bins / 256)``. So dark hair,
+    a black coat, a shadowed pavement and a white wall fall in different bins
+    instead of random hue bins. Returns ``[...] int32`` in
+    ``[0, h_bins * s_bins + v_bins)``; ``v_bins = 0`` is ``hs_bin_index``.
+    """
+    if v_bins == 0:
+        return hs_bin_index(colour, h_bins, s_bins)
+    h, s, v = _hsv_u8_channels(colour)
+    luts = hs_bin_luts(h_bins, s_bins)
+    hs = _lut_or_formula(h, luts[0], h_bins, 180) * s_bins + _lut_or_formula(
+        s, luts[1], s_bins, 256
+    )
+    achromatic = (s < s_min) | (v < v_min)
+    return jnp.where(achromatic, h_bins * s_bins + v * v_bins // 256, hs).astype(jnp.int32)
 
 
 def _lut_or_formula(x: Array, lut: np.ndarray, bins: int, span: int) -> Array:

@@ -100,3 +100,28 @@ def test_rgb_to_hsv_float_close_to_opencv_and_differentiable(textured):
         jnp.asarray(textured, jnp.float32) / 255.0
     )
     assert np.isfinite(np.asarray(grad)).all()
+
+
+def test_hsv_bin_index_matches_opencv_reference_jit_and_vmap():
+    """Chromatic pixels get OpenCV's H-S bin; achromatic ones (S < 26 or V < 51) a value bin."""
+    import cv2
+
+    from cpf_jax.kernels.color import hsv_bin_index
+
+    rng = np.random.default_rng(5)
+    img = rng.integers(0, 256, (2, 48, 64, 3), dtype=np.uint8)
+    img[:, :8] = rng.integers(0, 40, (2, 8, 64, 3))  # dark pixels
+    img[:, 8:16] = rng.integers(120, 140, (2, 8, 64, 1))  # greys
+    ref = []
+    for frame in img:
+        hsv = cv2.cvtColor(frame, cv2.COLOR_RGB2HSV).astype(np.int64)
+        h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+        hs = (h * 8 // 180) * 8 + s * 8 // 256
+        ref.append(np.where((s < 26) | (v < 51), 64 + v * 8 // 256, hs))
+    ref = np.stack(ref)
+    assert (ref >= 64).any() and (ref < 64).any()
+    out = jax.jit(jax.vmap(lambda f: hsv_bin_index(f, 8, 8, 8)))(jnp.asarray(img))
+    np.testing.assert_array_equal(np.asarray(out), ref)
+    # v_bins = 0 is the plain H-S index
+    np.testing.assert_array_equal(np.asarray(hsv_bin_index(img[0], 8, 8, 0)),
+                                  np.asarray(color.hs_bin_index(img[0], 8, 8)))

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpf_jax.dynamics import DEFAULT_TAU, MODELS, default_motion_params, propagate
+from cpf_jax.dynamics import MODELS, THESIS_TAU, default_motion_params, propagate
 
 ZERO_TAU = jnp.zeros(8)
 STATE = jnp.array([[100.0, 80.0, 3.0, -2.0, 40.0, 90.0, 0.5, 1.0]])
@@ -30,7 +30,7 @@ def test_ar2_matches_eq_3_26_without_noise():
 
 @pytest.mark.parametrize("model", ["ar1_fixed", "ar2_fixed"])
 def test_fixed_models_keep_size(model):
-    tau = jnp.asarray(DEFAULT_TAU) * 5
+    tau = jnp.asarray(THESIS_TAU) * 5
     out = np.asarray(propagate(KEY, jnp.tile(STATE, (100, 1)), jnp.tile(PREV, (100, 1)), tau, MP,
                                model=model, hierarchical=True))
     np.testing.assert_allclose(out[:, 4:6], np.tile([40.0, 90.0], (100, 1)))
@@ -40,7 +40,7 @@ def test_fixed_models_keep_size(model):
 
 def test_random_walk_has_no_velocity():
     out = np.asarray(propagate(KEY, jnp.tile(STATE, (500, 1)), jnp.tile(PREV, (500, 1)),
-                               jnp.asarray(DEFAULT_TAU), MP, model="random_walk"))
+                               jnp.asarray(THESIS_TAU), MP, model="random_walk"))
     assert np.all(out[:, [2, 3, 6, 7]] == 0)
     np.testing.assert_allclose(out[:, 0].mean(), 100.0, atol=1.5)  # no drift from x'
     np.testing.assert_allclose(out[:, 0].std(), 10.0, rtol=0.1)
@@ -49,16 +49,16 @@ def test_random_walk_has_no_velocity():
 def test_ar1_noise_scales_are_tau():
     n = 20_000
     out = np.asarray(propagate(KEY, jnp.tile(STATE, (n, 1)), jnp.tile(PREV, (n, 1)),
-                               jnp.asarray(DEFAULT_TAU), MP, model="ar1"))
+                               jnp.asarray(THESIS_TAU), MP, model="ar1"))
     # position gets n1 (tau=10) only; velocity n3 (tau=1)
-    np.testing.assert_allclose(out.std(axis=0), DEFAULT_TAU, rtol=0.03)
+    np.testing.assert_allclose(out.std(axis=0), THESIS_TAU, rtol=0.03)
 
 
 def test_guidance_stretches_along_motion_and_keeps_stationary_isotropic():
     n = 20_000
     mp = default_motion_params()._replace(guided_fraction=jnp.float32(1.0))
     moving = jnp.tile(jnp.array([[100.0, 100.0, 8.0, 0.0, 40.0, 90.0, 0.0, 0.0]]), (n, 1))
-    out = np.asarray(propagate(KEY, moving, moving, jnp.asarray(DEFAULT_TAU), mp, model="ar1",
+    out = np.asarray(propagate(KEY, moving, moving, jnp.asarray(THESIS_TAU), mp, model="ar1",
                                hierarchical=True))
     sx, sy = out[:, 0].std(), out[:, 1].std()
     assert sx > 1.5 * 10 and sy < 10 / 1.5
@@ -66,7 +66,7 @@ def test_guidance_stretches_along_motion_and_keeps_stationary_isotropic():
     # size-velocity noise is damped by fast motion along x
     assert out[:, 6].std() < 0.1 * 0.5
     still = moving.at[:, 2].set(0.0)
-    out = np.asarray(propagate(KEY, still, still, jnp.asarray(DEFAULT_TAU), mp, model="ar1",
+    out = np.asarray(propagate(KEY, still, still, jnp.asarray(THESIS_TAU), mp, model="ar1",
                                hierarchical=True))
     np.testing.assert_allclose([out[:, 0].std(), out[:, 1].std()], [10, 10], rtol=0.05)
 
@@ -74,22 +74,22 @@ def test_guidance_stretches_along_motion_and_keeps_stationary_isotropic():
 def test_guided_fraction_zero_equals_plain():
     mp = default_motion_params()._replace(guided_fraction=jnp.float32(0.0))
     p = jnp.tile(STATE, (64, 1))
-    a = propagate(KEY, p, p, jnp.asarray(DEFAULT_TAU), mp, model="ar1", hierarchical=True)
-    b = propagate(KEY, p, p, jnp.asarray(DEFAULT_TAU), mp, model="ar1", hierarchical=False)
+    a = propagate(KEY, p, p, jnp.asarray(THESIS_TAU), mp, model="ar1", hierarchical=True)
+    b = propagate(KEY, p, p, jnp.asarray(THESIS_TAU), mp, model="ar1", hierarchical=False)
     np.testing.assert_allclose(np.asarray(a), np.asarray(b))
 
 
 @pytest.mark.parametrize("model", MODELS)
 def test_jit_and_vmap(model):
     p = jnp.tile(STATE, (16, 1))
-    f = jax.jit(lambda k, p: propagate(k, p, p, jnp.asarray(DEFAULT_TAU), MP, model=model,
+    f = jax.jit(lambda k, p: propagate(k, p, p, jnp.asarray(THESIS_TAU), MP, model=model,
                                        hierarchical=True))
     a = f(KEY, p)
     keys = jax.random.split(KEY, 3)
     b = jax.vmap(f, in_axes=(0, None))(keys, p)
     assert b.shape == (3, 16, 8) and np.isfinite(np.asarray(b)).all()
     np.testing.assert_allclose(np.asarray(a), np.asarray(propagate(
-        KEY, p, p, jnp.asarray(DEFAULT_TAU), MP, model=model, hierarchical=True)), rtol=1e-5)
+        KEY, p, p, jnp.asarray(THESIS_TAU), MP, model=model, hierarchical=True)), rtol=1e-5)
 
 
 def test_unknown_model_is_a_clear_error():
