@@ -86,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="PRNG seed")
     p.add_argument("--out", help="write frame,x,y,w,h rows (CSV) as the run goes")
     p.add_argument("--rrd", help="write a Rerun recording to this .rrd file")
-    p.add_argument("--model", choices=MODELS, default="ar1", help="motion model")
+    p.add_argument("--dynamics", choices=MODELS, default="ar1", help="motion model")
     p.add_argument(
         "--no-hierarchical", action="store_true", help="plain sampling instead of motion-guided"
     )
@@ -163,7 +163,7 @@ def _run(args: argparse.Namespace) -> int:
         config_kw["bins"] = parse_bins(args.bins)
     config = ColourConfig(
         n_particles=args.particles,
-        model=args.model,
+        model=args.dynamics,
         hierarchical=not args.no_hierarchical,
         estimator=args.estimator,
         resampler=args.resampler,

@@ -72,19 +72,34 @@ def _sequence(name: str, seed: int):
     return seq, frames
 
 
+@functools.cache
+def _runner(config: ColourConfig):
+    """One jitted batch runner per static config: (params, keys, frames, box) -> boxes."""
+    filt = build_colour_filter(config)
+
+    # lax.map (not vmap) over filter seeds keeps the histogram kernel's lax.cond
+    # a real branch, so only the windowed path runs.
+    def run(params, keys, frames, box):
+        return jax.lax.map(lambda k: track_boxes(filt, params, k, frames, box), keys)
+
+    return jax.jit(run)
+
+
+def _window_config(config: ColourConfig, name: str) -> ColourConfig:
+    """The config with a histogram window sized from the scenario's first scene."""
+    seq, _ = _sequence(name, 0)
+    box_wh = tuple(float(v) for v in seq.boxes[0, 2:])
+    return config.with_window(box_wh, seq.colour.shape[1:3], growth=1.8)
+
+
 def success_rates(name: str, scene_seeds, keys: int, config: ColourConfig, params) -> list[float]:
     """Success rate (%) of every (scene seed, filter seed) run of one scenario."""
+    run = _runner(_window_config(config, name))
     out = []
     for s in scene_seeds:
         seq, frames = _sequence(name, s)
-        box = jnp.asarray(seq.boxes[0])
-        cfg = config.with_window(tuple(np.asarray(seq.boxes[0, 2:])), seq.colour.shape[1:3])
-        filt = build_colour_filter(cfg)
-        # lax.map (not vmap) over filter seeds keeps the histogram kernel's
-        # lax.cond a real branch, so only the windowed path runs.
-        run = jax.jit(lambda ks, f=filt, fr=frames, b=box: jax.lax.map(
-            lambda k: track_boxes(f, params, k, fr, b), ks))
-        boxes = np.asarray(run(jax.random.split(jax.random.PRNGKey(1000 + s), keys)))
+        ks = jax.random.split(jax.random.PRNGKey(1000 + s), keys)
+        boxes = np.asarray(run(params, ks, frames, jnp.asarray(seq.boxes[0])))
         for b in boxes:
             out.append(summarise(b, seq.boxes, seq.visible)["success_rate"])
     return out
@@ -107,9 +122,8 @@ def crossing(n_particles: int, keys: int, config: ColourConfig, params) -> dict 
     cfg = dataclasses.replace(config, n_particles=n_particles).with_window(
         tuple(np.asarray(box[2:])), rec.colour.shape[1:3]
     )
-    filt = build_colour_filter(cfg)
-    run = jax.jit(lambda ks: jax.lax.map(lambda k: track_boxes(filt, params, k, frames, box), ks))
-    boxes = np.asarray(run(jax.random.split(jax.random.PRNGKey(7), keys)))
+    ks = jax.random.split(jax.random.PRNGKey(7), keys)
+    boxes = np.asarray(_runner(cfg)(params, ks, frames, box))
     runs = [summarise(b, rec.boxes, rec.visible) for b in boxes]
     return {
         "success_rate": float(np.mean([r["success_rate"] for r in runs])),
