@@ -395,7 +395,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             if config.ring_margin > 0:
                 # Centre-surround: person-coloured pixels just outside the box
                 # count against it, so a box smaller than the person loses.
-                ring = jnp.maximum(counts[:, k] - inside, 0.0)
+                ring = jnp.maximum(jnp.sum(counts[:, k:], axis=-2) - inside, 0.0)
                 score = score - ring @ positive
             return jnp.stack([jnp.mean(d2, axis=-1), score / area], axis=-1)
 
@@ -405,7 +405,10 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             m = config.ring_margin
             grow = jnp.array([-m, -m, 2 * m, 2 * m], jnp.float32)
             grown = boxes_xywh + grow * boxes_xywh[:, jnp.array([2, 3, 2, 3])]
-            rects = jnp.concatenate([rects, box_ops.xywh_to_rect(grown)[:, None]], axis=1)
+            # The grown box as two stripes: each stays under the 65,536-pixel
+            # limit of the fast uint16 tables for any box up to ~77k pixels.
+            grown_rects = box_ops.xywh_to_rect(box_parts(grown, 2))
+            rects = jnp.concatenate([rects, grown_rects], axis=1)
         out = rect_reduce(
             bin_idx, rects, distance_and_contrast, n_bins=n_bins, window=config.window
         )
