@@ -1,0 +1,177 @@
+"""Grid cells of boxes and the per-cell statistics of the RGB-D likelihood (P 2.2-2.4).
+
+Conventions (those of ``cpf_jax.kernels.boxes``): boxes are ``[..., 4] (x, y,
+w, h)`` top-left float pixels; depth is ``uint16`` millimetres, 0 = missing.
+
+* :func:`grid_cells` splits each box into ``k x k`` cells, row-major (cell
+  ``i = row * k + col``, row 0 at the top). Cell edges are shared, so after
+  ``boxes.xywh_to_rect`` rounding the cells' pixels tile the box's pixels.
+* Depth statistics per cell come from **histograms of depth** (counted
+  exactly by ``histogram.rect_reduce``, like the colour histograms), with
+  ``n`` bins spaced evenly in ``log z`` between ``z_min`` and ``z_max``
+  (:func:`depth_bin_index`): each bin spans the same relative depth,
+  ``(z_max / z_min)^(1/n) - 1`` (5.2 % for 64 bins over 0.4-10 m), which
+  matches a depth sensor whose error grows with distance. Depths outside the
+  range fall into the first / last bin.
+* :func:`histogram_quantile` reads a quantile (the median) off the counts,
+  interpolating linearly *in bin coordinates* (i.e. geometrically in depth)
+  inside the bin that holds the quantile's rank. **Approximation**: the
+  estimate lies in the same bin as the lower median (the sample of rank
+  ``ceil(n / 2)``, which is ``np.median`` for an odd count; for an even count
+  ``np.median`` averages it with the next sample), so it is within one relative
+  bin width of it; against ``np.median`` the error is a small fraction of a
+  bin on cells of tens of pixels or more (both tested).
+* :func:`histogram_fraction_below` is the share of the counted pixels nearer
+  than a threshold, with the same in-bin interpolation: the depth-ordering
+  evidence ("something in this cell is nearer than the target").
+* :func:`beta_log_density` is the log of the Beta density of paper eq. 2, on a
+  ratio clipped to ``[eps, 1 - eps]`` (a ratio of exactly 0 or 1 would give an
+  infinite log-density for shapes below or above 1).
+
+Everything is pure, static-shaped and works under ``jit`` and ``vmap``; the
+bin layout ``(n_bins, z_min, z_max)`` is static.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.scipy.special import betaln
+
+__all__ = [
+    "grid_cells",
+    "border_strips",
+    "side_cells",
+    "depth_bin_edges",
+    "depth_bin_index",
+    "depth_to_bin_coord",
+    "bin_coord_to_depth",
+    "histogram_quantile",
+    "histogram_fraction_below",
+    "beta_log_density",
+]
+
+
+def grid_cells(boxes_xywh: Array, k: int) -> Array:
+    """``[..., 4]`` xywh boxes -> ``[..., k * k, 4]`` xywh cells, row-major (``k`` static)."""
+    b = jnp.asarray(boxes_xywh, jnp.float32)
+    f = jnp.arange(k, dtype=jnp.float32) / k
+    cw = b[..., 2:3] / k
+    ch = b[..., 3:4] / k
+    xs = b[..., 0:1] + b[..., 2:3] * f  # [..., k] left edges of the columns
+    ys = b[..., 1:2] + b[..., 3:4] * f  # [..., k] top edges of the rows
+    x = jnp.tile(xs, (1,) * (b.ndim - 1) + (k,))
+    y = jnp.repeat(ys, k, axis=-1)
+    w = jnp.broadcast_to(cw, x.shape)
+    h = jnp.broadcast_to(ch, y.shape)
+    return jnp.stack([x, y, w, h], axis=-1)
+
+
+def border_strips(boxes_xywh: Array, thickness: float) -> Array:
+    """``[..., 4]`` xywh boxes -> ``[..., 8, 4]`` xywh strips along their edges.
+
+    Order: inner top, bottom, left, right (inside the box, along each edge),
+    then outer top, bottom, left, right (just outside). Top/bottom strips are
+    ``thickness * h`` tall, left/right strips ``thickness * w`` wide.
+    """
+    b = jnp.asarray(boxes_xywh, jnp.float32)
+    x, y, w, h = (b[..., i] for i in range(4))
+    th, tw = thickness * h, thickness * w
+    rows = [
+        (x, y, w, th),
+        (x, y + h - th, w, th),
+        (x, y, tw, h),
+        (x + w - tw, y, tw, h),
+        (x, y - th, w, th),
+        (x, y + h, w, th),
+        (x - tw, y, tw, h),
+        (x + w, y, tw, h),
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def side_cells(k: int) -> np.ndarray:
+    """``[4, k*k] bool``: which grid cells touch the top, bottom, left and right edge."""
+    idx = np.arange(k * k)
+    row, col = idx // k, idx % k
+    return np.stack([row == 0, row == k - 1, col == 0, col == k - 1])
+
+
+def depth_bin_edges(n_bins: int, z_min: float, z_max: float) -> np.ndarray:
+    """``[n_bins + 1]`` float64 bin edges (mm), evenly spaced in ``log z``."""
+    if not (0 < z_min < z_max) or n_bins < 1:
+        raise ValueError(f"need 0 < z_min < z_max and n_bins >= 1, got {z_min}, {z_max}, {n_bins}")
+    return z_min * (z_max / z_min) ** (np.arange(n_bins + 1) / n_bins)
+
+
+def depth_to_bin_coord(z: Array, n_bins: int, z_min: float, z_max: float) -> Array:
+    """Continuous bin coordinate ``n log(z / z_min) / log(z_max / z_min)`` (unclipped)."""
+    scale = n_bins / math.log(z_max / z_min)
+    return (jnp.log(jnp.maximum(jnp.asarray(z, jnp.float32), 1e-3)) - math.log(z_min)) * scale
+
+
+def bin_coord_to_depth(p: Array, n_bins: int, z_min: float, z_max: float) -> Array:
+    """Inverse of :func:`depth_to_bin_coord`: ``z_min (z_max / z_min)^(p / n)`` (mm)."""
+    return z_min * jnp.exp(jnp.asarray(p, jnp.float32) * (math.log(z_max / z_min) / n_bins))
+
+
+def depth_bin_index(
+    depth: Array, mask: Array | None, n_bins: int, z_min: float, z_max: float
+) -> Array:
+    """``[H, W] int32`` depth bin per pixel; ``-1`` (not counted) where depth is 0 or ``~mask``."""
+    z = jnp.asarray(depth)
+    p = depth_to_bin_coord(z, n_bins, z_min, z_max)
+    idx = jnp.clip(jnp.floor(p), 0, n_bins - 1).astype(jnp.int32)
+    ok = z > 0
+    if mask is not None:
+        ok = ok & jnp.asarray(mask, bool)
+    return jnp.where(ok, idx, -1)
+
+
+def histogram_quantile(
+    counts: Array, n_bins: int, z_min: float, z_max: float, q: float = 0.5
+) -> tuple[Array, Array]:
+    """Quantile ``q`` of depth histograms ``counts [..., n_bins]`` -> ``(value, total) [...]``.
+
+    The value (mm) is interpolated inside the bin holding rank ``q * total``
+    (module docstring for the error bound); 0 where the histogram is empty.
+    """
+    c = jnp.asarray(counts, jnp.float32)
+    total = jnp.sum(c, axis=-1)
+    cum = jnp.cumsum(c, axis=-1)
+    rank = q * total
+    # First bin whose cumulative count reaches the rank (strictly positive counts).
+    j = jnp.sum((cum < rank[..., None]).astype(jnp.int32), axis=-1)
+    j = jnp.clip(j, 0, n_bins - 1)
+    below = (
+        jnp.take_along_axis(cum, j[..., None], axis=-1)[..., 0]
+        - jnp.take_along_axis(c, j[..., None], axis=-1)[..., 0]
+    )
+    in_bin = jnp.take_along_axis(c, j[..., None], axis=-1)[..., 0]
+    frac = jnp.clip((rank - below) / jnp.maximum(in_bin, 1e-9), 0.0, 1.0)
+    value = bin_coord_to_depth(j.astype(jnp.float32) + frac, n_bins, z_min, z_max)
+    return jnp.where(total > 0, value, 0.0), total
+
+
+def histogram_fraction_below(
+    counts: Array, threshold: Array, n_bins: int, z_min: float, z_max: float
+) -> Array:
+    """Share ``[...]`` of the counted pixels nearer than ``threshold [...]`` mm (0 if empty).
+
+    The bin holding the threshold contributes the part of its count below it,
+    assuming its pixels spread evenly in bin coordinates.
+    """
+    c = jnp.asarray(counts, jnp.float32)
+    p = depth_to_bin_coord(threshold, n_bins, z_min, z_max)
+    w = jnp.clip(p[..., None] - jnp.arange(n_bins, dtype=jnp.float32), 0.0, 1.0)
+    total = jnp.sum(c, axis=-1)
+    return jnp.where(total > 0, jnp.sum(c * w, axis=-1) / jnp.maximum(total, 1.0), 0.0)
+
+
+def beta_log_density(ratio: Array, a: Array, b: Array, eps: float = 1e-3) -> Array:
+    """``log Beta(r; a, b)`` with ``r`` clipped to ``[eps, 1 - eps]`` (paper eq. 2, normalised)."""
+    r = jnp.clip(jnp.asarray(ratio, jnp.float32), eps, 1.0 - eps)
+    return (a - 1.0) * jnp.log(r) + (b - 1.0) * jnp.log1p(-r) - betaln(a, b)

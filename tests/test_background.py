@@ -1,0 +1,256 @@
+"""Background model and per-cell statistics kernels: NumPy / SciPy references, jit, vmap."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from cpf_jax.kernels.background import (
+    Background,
+    foreground_mask,
+    masked_median,
+    median_background,
+    update_background,
+)
+from cpf_jax.kernels.boxes import xywh_to_rect
+from cpf_jax.kernels.cells import (
+    beta_log_density,
+    border_strips,
+    depth_bin_edges,
+    depth_bin_index,
+    grid_cells,
+    histogram_fraction_below,
+    histogram_quantile,
+    side_cells,
+)
+from cpf_jax.kernels.histogram import box_histograms
+
+H, W, K = 24, 32, 7
+NZ, ZLO, ZHI = 64, 400.0, 10000.0
+REL_BIN = (ZHI / ZLO) ** (1 / NZ) - 1  # 5.2 % per bin
+
+
+def _stack(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    colour = rng.integers(0, 256, (K, H, W, 3)).astype(np.uint8)
+    depth = rng.integers(500, 6000, (K, H, W)).astype(np.uint16)
+    depth[rng.uniform(size=depth.shape) < 0.3] = 0
+    depth[:, :2, :2] = 0  # never measured
+    return colour, depth
+
+
+# -- background -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("mode", ["plain", "jit", "vmap"])
+def test_median_background_matches_numpy(mode):
+    colour, depth = _stack(0)
+    fn = median_background
+    if mode == "jit":
+        fn = jax.jit(median_background)
+    if mode == "vmap":
+        batch = jax.vmap(median_background)(
+            jnp.stack([colour, colour[::-1]]), jnp.stack([depth, depth[::-1]])
+        )
+        bg = Background(batch.colour[1], batch.depth[1])  # the median ignores order
+    else:
+        bg = fn(colour, depth)
+    np.testing.assert_allclose(np.asarray(bg.colour), np.median(colour, axis=0), atol=1e-4)
+    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):  # all-NaN corner
+        ref = np.nanmedian(np.where(depth > 0, depth, np.nan).astype(np.float64), axis=0)
+    np.testing.assert_allclose(np.asarray(bg.depth), np.nan_to_num(ref, nan=0.0), rtol=1e-6)
+    assert (np.asarray(bg.depth)[:2, :2] == 0).all()
+
+
+def test_masked_median_even_and_odd_counts():
+    v = jnp.array([[1.0, 5.0], [3.0, 7.0], [10.0, 2.0], [4.0, 9.0]])
+    ok = jnp.array([[True, True], [True, False], [False, True], [True, True]])
+    got = np.asarray(masked_median(v, ok, axis=0))
+    np.testing.assert_allclose(got, [np.median([1, 3, 4]), np.median([5, 2, 9])])
+    assert float(masked_median(v, jnp.zeros_like(ok), axis=0)[0]) == 0.0
+
+
+def _fg_reference(colour, depth, bg_c, bg_d, abs_=150.0, rel=0.05, cthr=40.0):
+    z = depth.astype(np.float64)
+    both = (z > 0) & (bg_d > 0)
+    nearer = (bg_d - z) > np.maximum(abs_, rel * bg_d)
+    col = np.abs(colour.astype(np.float64) - bg_c).max(-1) > cthr
+    return np.where(both, nearer, col)
+
+
+@pytest.mark.parametrize("mode", ["jit", "vmap"])
+def test_foreground_mask_matches_numpy(mode):
+    colour, depth = _stack(1)
+    bg = median_background(colour, depth)
+    frames_c, frames_d = colour[:3], depth[:3]
+    if mode == "jit":
+        got = np.stack(
+            [
+                np.asarray(jax.jit(foreground_mask)(c, d, bg))
+                for c, d in zip(frames_c, frames_d, strict=True)
+            ]
+        )
+    else:
+        got = np.asarray(jax.vmap(foreground_mask, in_axes=(0, 0, None))(frames_c, frames_d, bg))
+    for i in range(3):
+        want = _fg_reference(frames_c[i], frames_d[i], np.asarray(bg.colour), np.asarray(bg.depth))
+        np.testing.assert_array_equal(got[i], want)
+
+
+def test_foreground_rules():
+    bg = Background(jnp.full((1, 4, 3), 100.0), jnp.array([[3000.0, 3000.0, 0.0, 3000.0]]))
+    colour = jnp.array(
+        [[[100, 100, 100], [250, 250, 250], [250, 250, 250], [100, 100, 100]]], jnp.uint8
+    )
+    depth = jnp.array([[2000, 3100, 2000, 0]], jnp.uint16)
+    fg = np.asarray(foreground_mask(colour, depth, bg))
+    # nearer by 1 m: fg; farther (colour differs): not fg; no bg depth: colour; no depth: colour
+    np.testing.assert_array_equal(fg, [[True, False, True, False]])
+
+
+def test_running_update_only_touches_background_pixels():
+    colour, depth = _stack(2)
+    bg = median_background(colour, depth)
+    fg = np.zeros((H, W), bool)
+    fg[5:10, 5:10] = True
+    new = jax.jit(update_background)(bg, colour[0], depth[0], fg, 0.5)
+    c0, d0 = np.asarray(bg.colour), np.asarray(bg.depth)
+    c1, d1 = np.asarray(new.colour), np.asarray(new.depth)
+    np.testing.assert_array_equal(c1[fg], c0[fg])
+    np.testing.assert_array_equal(d1[fg], d0[fg])
+    want = 0.5 * c0[~fg] + 0.5 * colour[0][~fg]
+    np.testing.assert_allclose(c1[~fg], want, atol=1e-4)
+    z = depth[0].astype(np.float64)
+    upd = ~fg & (z > 0) & (d0 > 0)
+    np.testing.assert_allclose(d1[upd], 0.5 * d0[upd] + 0.5 * z[upd], rtol=1e-6)
+    miss = ~fg & (z == 0)
+    np.testing.assert_array_equal(d1[miss], d0[miss])
+
+
+# -- cells ------------------------------------------------------------------------------
+
+
+def test_grid_cells_tile_the_box_exactly():
+    boxes = jnp.array([[3.3, 4.6, 17.2, 13.9], [0.0, 0.0, 10.0, 10.0]])
+    for k in (1, 2, 3):
+        cells = grid_cells(boxes, k)
+        assert cells.shape == (2, k * k, 4)
+        idx = np.zeros((H, W), np.int32)
+        counts = np.asarray(box_histograms(jnp.asarray(idx), xywh_to_rect(cells[0]), 1))[:, 0]
+        box_count = np.asarray(box_histograms(jnp.asarray(idx), xywh_to_rect(boxes[:1]), 1))
+        assert counts.sum() == box_count.sum()  # cells partition the box's pixels
+        # row-major: cell 1 is right of cell 0
+        if k > 1:
+            assert float(cells[0, 1, 0]) > float(cells[0, 0, 0])
+            assert float(cells[0, k, 1]) > float(cells[0, 0, 1])
+
+
+def test_border_strips_and_sides():
+    b = jnp.array([10.0, 20.0, 30.0, 50.0])
+    s = np.asarray(border_strips(b, 0.1))
+    np.testing.assert_allclose(s[0], [10, 20, 30, 5])  # inner top
+    np.testing.assert_allclose(s[1], [10, 65, 30, 5])  # inner bottom
+    np.testing.assert_allclose(s[3], [37, 20, 3, 50])  # inner right
+    np.testing.assert_allclose(s[4], [10, 15, 30, 5])  # outer top
+    np.testing.assert_allclose(s[6], [7, 20, 3, 50])  # outer left
+    sides = side_cells(2)
+    np.testing.assert_array_equal(sides, [[1, 1, 0, 0], [0, 0, 1, 1], [1, 0, 1, 0], [0, 1, 0, 1]])
+
+
+def _cell_depths(seed: int, n_cells: int = 40) -> list[np.ndarray]:
+    """Depth samples of cells: unimodal, bimodal (occluder + target), tiny and skewed."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n_cells):
+        kind = i % 4
+        if kind == 0:
+            z = rng.normal(3000, 80, rng.integers(20, 400))
+        elif kind == 1:
+            n = rng.integers(50, 400)
+            z = np.concatenate([rng.normal(1800, 50, n // 3), rng.normal(3500, 100, n - n // 3)])
+        elif kind == 2:
+            z = rng.uniform(800, 9000, rng.integers(1, 6))
+        else:
+            z = 500 + rng.exponential(1500, rng.integers(30, 300))
+        out.append(np.clip(z, 450, 9500).round())
+    return out
+
+
+def _counts(samples: list[np.ndarray]) -> np.ndarray:
+    edges = depth_bin_edges(NZ, ZLO, ZHI)
+    return np.stack([np.histogram(z, edges)[0] for z in samples]).astype(np.float32)
+
+
+def test_depth_bins_agree_with_edges():
+    z = np.array([[450, 1000, 2999, 9999, 0, 300, 20000]], np.uint16)
+    idx = np.asarray(depth_bin_index(jnp.asarray(z), None, NZ, ZLO, ZHI))[0]
+    edges = depth_bin_edges(NZ, ZLO, ZHI)
+    for zz, i in zip(z[0], idx, strict=True):
+        if zz == 0:
+            assert i == -1
+        else:
+            assert i == np.clip(np.searchsorted(edges, zz, side="right") - 1, 0, NZ - 1)
+    mask = np.ones_like(z, bool)
+    mask[0, 1] = False
+    assert int(depth_bin_index(jnp.asarray(z), jnp.asarray(mask), NZ, ZLO, ZHI)[0, 1]) == -1
+
+
+@pytest.mark.parametrize("mode", ["jit", "vmap"])
+def test_histogram_median_within_stated_tolerance_of_numpy(mode):
+    samples = _cell_depths(3)
+    counts = jnp.asarray(_counts(samples))
+    fn = jax.jit(lambda c: histogram_quantile(c, NZ, ZLO, ZHI))
+    if mode == "vmap":
+        med, total = jax.vmap(lambda c: histogram_quantile(c, NZ, ZLO, ZHI))(counts)
+    else:
+        med, total = fn(counts)
+    med = np.asarray(med)
+    np.testing.assert_array_equal(np.asarray(total), [len(z) for z in samples])
+    # Stated bound (kernels.cells): within one bin (5.2 %) of the lower median, which is
+    # np.median for odd counts ...
+    lower = np.array([np.sort(z)[(len(z) - 1) // 2] for z in samples])
+    assert (np.abs(med - lower) <= REL_BIN * lower + 1e-3).all()
+    # ... and a small fraction of a bin from np.median on cells with enough pixels.
+    ref = np.array([np.median(z) for z in samples])
+    rel = np.abs(med - ref) / ref
+    big = np.array([len(z) >= 20 for z in samples])
+    assert np.median(rel[big]) < 0.25 * REL_BIN and rel[big].max() < REL_BIN
+
+
+def test_histogram_quantile_empty_and_fraction_below():
+    empty = jnp.zeros((NZ,))
+    med, total = histogram_quantile(empty, NZ, ZLO, ZHI)
+    assert float(med) == 0.0 and float(total) == 0.0
+    samples = _cell_depths(4)
+    counts = jnp.asarray(_counts(samples))
+    thr = jnp.asarray(np.linspace(1000, 5000, len(samples)), jnp.float32)
+    got = np.asarray(
+        jax.jit(lambda c, t: histogram_fraction_below(c, t, NZ, ZLO, ZHI))(counts, thr)
+    )
+    ref = np.array([(z < t).mean() for z, t in zip(samples, np.asarray(thr), strict=True)])
+    # Error: at most the share of the samples in the threshold's own bin.
+    edges = depth_bin_edges(NZ, ZLO, ZHI)
+    for g, r, z, t in zip(got, ref, samples, np.asarray(thr), strict=True):
+        j = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, NZ - 1)
+        in_bin = ((z >= edges[j]) & (z < edges[j + 1])).mean()
+        assert abs(g - r) <= in_bin + 1e-6
+    assert float(histogram_fraction_below(empty, jnp.float32(3000), NZ, ZLO, ZHI)) == 0.0
+
+
+@pytest.mark.parametrize("mode", ["jit", "vmap"])
+def test_beta_log_density_matches_scipy(mode):
+    r = np.linspace(0.01, 0.99, 25).astype(np.float32)
+    a = np.array([0.8, 1.0, 3.5, 7.9], np.float32)
+    b = np.array([2.3, 1.0, 7.9, 1.5], np.float32)
+    if mode == "jit":
+        got = jax.jit(beta_log_density)(r[:, None], a, b)
+    else:
+        got = jax.vmap(beta_log_density, in_axes=(0, None, None))(r[:, None], a, b)
+    want = stats.beta.logpdf(r[:, None].astype(np.float64), a, b)
+    np.testing.assert_allclose(np.asarray(got), want, rtol=2e-4, atol=2e-4)
+    # Ratios of exactly 0 or 1 are clipped, never -inf / nan.
+    edge = np.asarray(beta_log_density(jnp.array([0.0, 1.0]), 3.5, 7.9))
+    assert np.isfinite(edge).all()
