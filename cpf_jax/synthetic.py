@@ -115,10 +115,18 @@ class Clothing:
 
 @dataclass(frozen=True)
 class Occluder:
-    """A box standing on the floor that moves in a straight line (world metres, seconds).
+    """A box standing on the floor, or a second person, moving in a straight line (world
+    metres, seconds).
 
     ``start_xz`` / ``end_xz`` are floor positions of its centre (x right, z away from the
     camera); it moves between them during ``[t0_s, t1_s]`` and rests outside that interval.
+
+    ``kind="box"``: a box of ``size_m`` and ``colour``. ``kind="person"``: another walking
+    figure of height ``size_m[1]`` dressed in ``clothing`` (default: grey top, dark
+    trousers), facing and walking from ``start_xz`` to ``end_xz`` with the gait of its
+    speed (standing still outside ``[t0_s, t1_s]``). Occluders are objects ``2, 3, ...``
+    in the z-buffer: they hide the target (``mask``, ``visible_fraction``, ``occlusion``)
+    but are never part of its ground truth.
     """
 
     size_m: tuple[float, float, float] = (0.6, 1.9, 0.4)  # width (x), height, depth (z)
@@ -127,6 +135,12 @@ class Occluder:
     t0_s: float = 0.0
     t1_s: float = 5.0
     colour: RGB = (90, 90, 95)
+    kind: str = "box"
+    clothing: Clothing | None = None
+    # True: the x coordinates are given for a walker who starts walking towards +x and are
+    # mirrored when this seed's walker starts towards -x, so that the occluder meets the
+    # walker in the same way for every seed.
+    mirror_x: bool = False
 
 
 @dataclass(frozen=True)
@@ -209,6 +223,44 @@ SCENARIOS: dict[str, ScenarioSpec] = {
         backdrop="full",
     ),
     "light_switch": ScenarioSpec(illumination="switch"),
+    # Occlusion scenarios (paper Table 2): something nearer than the walker crosses the
+    # whole view slowly (0.64 m/s) while the walker paces behind it, so the two pass each
+    # other going the same way (long occlusions, up to ~60 frames) and opposite ways
+    # (short ones, ~10 frames), partially and fully. meta["occlusion"] has the state.
+    "occlusion_box": ScenarioSpec(
+        n_frames=150,
+        occluders=(
+            Occluder(
+                size_m=(0.8, 2.0, 0.4),
+                start_xz=(-2.2, 1.7),
+                end_xz=(2.3, 1.7),
+                t0_s=0.0,
+                t1_s=15.0,
+                colour=(95, 95, 100),
+                mirror_x=True,
+            ),
+        ),
+    ),
+    # A second person in a similar outfit (red top, dark-blue trousers) walks across in
+    # front of the walker: colour alone cannot tell the two apart, depth can.
+    "occlusion_person": ScenarioSpec(
+        n_frames=150,
+        occluders=(
+            Occluder(
+                size_m=(0.5, 1.8, 0.3),
+                start_xz=(-2.2, 1.6),
+                end_xz=(2.3, 1.6),
+                t0_s=0.0,
+                t1_s=15.0,
+                kind="person",
+                mirror_x=True,
+                clothing=Clothing(shirt=(155, 40, 55), trousers=(40, 48, 80), hair=(60, 45, 35)),
+            ),
+        ),
+    ),
+    # Abrupt appearance change (paper Table 1's "appearance changed drastically"): at
+    # frame 50 the walker's top turns from red to a green jacket.
+    "appearance_change": ScenarioSpec(n_frames=110, shirt_change=(50, (40, 125, 70))),
 }
 
 
@@ -698,6 +750,33 @@ def _person_prims(
     return prims
 
 
+# A second person's default outfit: grey top, dark trousers.
+_OCCLUDER_CLOTHING = Clothing(shirt=(120, 120, 125), trousers=(40, 40, 45), hair=(70, 55, 40))
+
+
+def _occluder_person(
+    oc: Occluder,
+    xz,
+    a: float,
+    phase0: float,
+    height: float,
+    cam: _Camera,
+    mat_offset: int,
+    object_id: int,
+) -> list[rnd.Prim]:
+    """Primitives of a person occluder at floor point ``xz``, ``a`` of the way along its walk."""
+    delta = np.asarray(oc.end_xz, float) - np.asarray(oc.start_xz, float)
+    dist = float(np.linalg.norm(delta))
+    heading = delta / dist if dist > 1e-9 else np.array([1.0, 0.0])
+    duration = max(oc.t1_s - oc.t0_s, 1e-9)
+    moving = 0.0 < a < 1.0
+    speed = dist / duration if moving else 0.0
+    step = body.gait_parameters(max(dist / duration, 1e-3))["step"]
+    phase = phase0 + np.pi * a * dist / step
+    pose = body.body_pose(np.asarray(xz, float), heading, phase, speed, height)
+    return _person_prims(pose, height, cam, mat_offset, object_id)
+
+
 # ---------------------------------------------------------------------------------------------
 # Depth effects.
 
@@ -838,6 +917,8 @@ def make_sequence(
     H, W = HEIGHT, WIDTH
     fps = float(spec.fps)
     layout_rng = np.random.default_rng([seed, 0])
+    # Occluder gait phases come from their own stream: the layout draws stay as they were.
+    layout_rng_occ = np.random.default_rng([seed, 3])
     cam = _camera(spec.camera_height_m, spec.camera_pitch_deg)
 
     n_req = int(n_frames) if n_frames is not None else int(spec.n_frames)
@@ -914,8 +995,20 @@ def make_sequence(
     pm_changed = None
     if spec.shirt_change is not None:
         pm_changed = _person_materials(cl, tuple(spec.shirt_change[1]))
-    occ_mats = [_Material(oc.colour, _ir(oc.colour), "plain", 0.004, 0.05) for oc in spec.occluders]
     n_parts = len(body.PART_NAMES)
+    occ_mats: list[_Material] = []
+    occ_mat_offset = []
+    for oc in spec.occluders:
+        occ_mat_offset.append(n_parts + len(occ_mats))
+        if oc.kind == "box":
+            occ_mats.append(_Material(oc.colour, _ir(oc.colour), "plain", 0.004, 0.05))
+        elif oc.kind == "person":
+            ocl = oc.clothing or _OCCLUDER_CLOTHING
+            occ_mats.extend(_person_materials(ocl, ocl.shirt))
+        else:
+            raise ValueError(f"unknown occluder kind {oc.kind!r}; expected 'box' or 'person'")
+    occ_phase0 = [layout_rng_occ.uniform(0, 2 * np.pi) for _ in spec.occluders]
+    walk_sign = -1.0 if heading_xz[0, 0] < 0 else 1.0  # the walker's initial x direction
     gain = _illumination_gain(spec, T, fps)
     unit_gain = bool(np.all(gain == 1.0))
     blur_r = int(np.ceil(3 * spec.colour_blur)) + 1 if spec.colour_blur > 0 else 0
@@ -948,16 +1041,27 @@ def make_sequence(
         person_prims = _person_prims(pose, spec.height_m, cam, 0, 1)
         occ_prims = []
         for k, oc in enumerate(spec.occluders):
+            if oc.mirror_x and walk_sign < 0:
+                oc = dataclasses.replace(
+                    oc,
+                    start_xz=(-oc.start_xz[0], oc.start_xz[1]),
+                    end_xz=(-oc.end_xz[0], oc.end_xz[1]),
+                )
             a = np.clip((t_s[t] - oc.t0_s) / max(oc.t1_s - oc.t0_s, 1e-9), 0.0, 1.0)
             xz = (1 - a) * np.asarray(oc.start_xz) + a * np.asarray(oc.end_xz)
             sx, sy, sz = oc.size_m
+            if oc.kind == "person":
+                occ_prims.extend(
+                    _occluder_person(oc, xz, a, occ_phase0[k], sy, cam, occ_mat_offset[k], 2 + k)
+                )
+                continue
             occ_prims.append(
                 rnd.box(
                     cam.to_cam((xz[0], sy / 2, xz[1])),
                     cam.R,
                     np.array([sx, sy, sz]) / 2,
                     2 + k,
-                    n_parts + k,
+                    occ_mat_offset[k],
                 )
             )
         prims = person_prims + occ_prims

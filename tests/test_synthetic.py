@@ -9,6 +9,7 @@ import pytest
 from cpf_jax.kernels.boxes import xywh_to_rect
 from cpf_jax.synthetic import (
     SCENARIOS,
+    Clothing,
     Occluder,
     SyntheticSequence,
     iter_frames,
@@ -289,7 +290,7 @@ def test_gait_limbs_swing_in_antiphase():
 # -- scenarios ------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", sorted(SCENARIOS))
+@pytest.mark.parametrize("name", sorted(n for n, sp in SCENARIOS.items() if not sp.occluders))
 def test_person_stays_fully_in_view(name):
     # Sample the default duration at 3 frames/s to keep the test fast.
     spec = SCENARIOS[name]
@@ -361,6 +362,60 @@ def test_occluder_hook_reports_partial_and_full_occlusion():
     z_torso = s.joints3d[t, _j(s, "torso"), 2]
     unmasked = s.depth[t][~s.mask[t]].astype(np.float64)
     assert (np.abs(unmasked - 1500) < 150).mean() > 0.05 and z_torso > 2500
+
+
+def test_person_occluder_hides_the_walker_and_is_not_in_the_mask():
+    # A second person walks quickly across, close to the camera, in front of the walker.
+    other = Occluder(
+        size_m=(0.5, 1.8, 0.3),
+        start_xz=(-2.0, 1.6),
+        end_xz=(2.0, 1.6),
+        t0_s=0.0,
+        t1_s=1.4,
+        kind="person",
+        clothing=Clothing(shirt=(30, 150, 60)),
+    )
+    s = make_sequence("walk_across_slow", n_frames=15, occluders=(other,))
+    occ, frac = s.meta["occlusion"], s.meta["visible_fraction"]
+    assert (occ == 1).any() and (frac < 0.8).any()
+    t = int(np.argmin(frac))
+    # The occluder's pixels (green top) are nearer than the walker and not in the mask.
+    hsv = cv2.cvtColor(s.colour[t], cv2.COLOR_RGB2HSV)
+    green = (np.abs(hsv[..., 0].astype(int) - 68) < 12) & (hsv[..., 1] > 120) & (s.depth[t] > 0)
+    assert green.sum() > 500 and not (green & s.mask[t]).any()
+    z_torso = s.joints3d[t, _j(s, "torso"), 2]
+    assert np.median(s.depth[t][green]) < z_torso - 800
+    with pytest.raises(ValueError, match="occluder kind"):
+        make_sequence("walk_across_slow", n_frames=1, occluders=(Occluder(kind="ghost"),))
+
+
+def test_occluder_mirror_x_follows_the_walkers_direction():
+    # The occluder starts on the side the walker walks away from, for either direction.
+    oc = Occluder(size_m=(0.5, 2.0, 0.3), start_xz=(-1.2, 1.8), end_xz=(-1.2, 1.8), mirror_x=True)
+    sides = []
+    for seed in range(6):
+        s = make_sequence("walk_across_slow", seed=seed, n_frames=2, occluders=(oc,))
+        walk = np.sign(s.joints3d[1, _j(s, "torso"), 0] - s.joints3d[0, _j(s, "torso"), 0])
+        near = (s.depth[0] > 0) & (s.depth[0] < 2100)
+        near[300:] = False  # ignore the floor in front of the camera
+        cols = np.nonzero(near.any(axis=0))[0]
+        sides.append(np.sign(np.mean(cols) - W / 2) * walk)
+    assert set(sides) == {-1.0}
+
+
+@pytest.mark.parametrize("name", ["occlusion_box", "occlusion_person", "appearance_change"])
+def test_occlusion_and_appearance_scenarios(name):
+    spec = SCENARIOS[name]
+    if name == "appearance_change":
+        assert spec.shirt_change is not None and not spec.occluders
+        return
+    s = make_sequence(name, seed=0, n_frames=66)
+    occ = s.meta["occlusion"]
+    assert occ[0] == 0 and (occ == 1).any()
+    if name == "occlusion_box":
+        assert (occ == 2).any()  # the box hides the walker completely for a while
+    full = occ == 2
+    assert not s.visible[full].any()
 
 
 def test_shirt_colour_change():
