@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--estimator", choices=("mean", "map", "robust"), default="mean")
     p.add_argument("--resampler", choices=tuple(SCHEMES), default="systematic")
-    p.add_argument("--sigma", type=float, default=None, help="likelihood width (default 0.33)")
+    p.add_argument("--sigma", type=float, default=None, help="likelihood width (default 0.15)")
     p.add_argument(
         "--bins", default=None, help="hue x saturation [x value] bins: 8x8x8 (default) or 8x8"
     )
