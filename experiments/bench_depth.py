@@ -217,7 +217,7 @@ def main() -> None:
         imgs, complete = f(jnp.asarray(q))
         ref = spin_numpy(points, normals, valid, q, bin_size)
         err = float(np.abs(np.asarray(imgs) - ref).max())
-        reps = args.repeats if n == 100 else max(5, args.repeats // 3)
+        reps = args.repeats if n == 100 else max(5, args.repeats // 2)
         ms = timed(f, jnp.asarray(q), repeats=reps, label=f"spin n={n}")
         numpy_ms = timed(spin_numpy, points, normals, valid, q, bin_size,
                          repeats=args.numpy_repeats if n == 100 else 3, label=f"numpy spin n={n}")
