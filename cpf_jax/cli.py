@@ -4,6 +4,13 @@ The driver is thin: it opens a frame source, validates the initial box, calls
 one jitted filter step per frame, writes each result as it goes (CSV row,
 Rerun log) and prints a summary. Nothing numeric lives here.
 
+Observation models (``--model``): ``rgb`` is the colour layer
+(``cpf_jax.colour``, the default); ``rgbd``, ``grid`` and ``grid-occlusion``
+are the RGB-D filter's variants (``cpf_jax.rgbd``). Depth is registered to
+colour first when a calibration is in effect: ``--calib FILE``, or the
+folder's own ``calibration.json`` (``cpf_jax.registration`` format). The RGB-D
+models learn a background from ``--background`` frames of the recording.
+
 Exit codes: 0 success, 2 bad input (path, image, box, option), 130 interrupted.
 """
 
@@ -68,6 +75,26 @@ def check_box(box: np.ndarray, size: tuple[int, int], where: str) -> None:
         )
 
 
+def parse_background(text: str, n_frames: int) -> list[int]:
+    """``"N"`` (N evenly spaced frames) or ``"A:B"`` (frames A..B-1) -> frame indices."""
+    try:
+        if ":" in text:
+            a, b = (int(v) for v in text.split(":"))
+            frames = list(range(max(a, 0), min(b, n_frames)))
+        else:
+            k = int(text)
+            if k < 1:
+                raise ValueError
+            frames = sorted({int(round(v)) for v in np.linspace(0, n_frames - 1, min(k, n_frames))})
+    except ValueError:
+        frames = None
+    if not frames:
+        raise UsageError(
+            f"--background expects N >= 1 or A:B with frames inside 0..{n_frames - 1}, got {text!r}"
+        )
+    return frames
+
+
 def build_parser() -> argparse.ArgumentParser:
     from cpf_jax.dynamics import MODELS
     from cpf_jax.kernels.resample import SCHEMES
@@ -87,6 +114,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="write frame,x,y,w,h rows (CSV) as the run goes")
     p.add_argument("--rrd", help="write a Rerun recording to this .rrd file")
     p.add_argument("--dynamics", choices=MODELS, default="ar1", help="motion model")
+    p.add_argument(
+        "--model",
+        choices=("rgb", "rgbd", "grid", "grid-occlusion"),
+        default="rgb",
+        help="observation model: colour only (default) or the RGB-D variants",
+    )
+    p.add_argument(
+        "--calib",
+        help="depth-to-colour calibration JSON (default: the folder's calibration.json)",
+    )
+    p.add_argument(
+        "--background",
+        default="25",
+        help="background frames for the RGB-D models: N (evenly spaced over the "
+        "recording, default 25) or A:B (frames A..B-1, 0-based)",
+    )
+    p.add_argument(
+        "--start",
+        type=int,
+        default=None,
+        help="first frame to track (0-based; default: the first frame with ground truth)",
+    )
     p.add_argument(
         "--no-hierarchical", action="store_true", help="plain sampling instead of motion-guided"
     )
@@ -146,9 +195,23 @@ def _run(args: argparse.Namespace) -> int:
     if not hasattr(source, "__len__"):
         raise UsageError(f"{args.path}: live sources are not supported by cpf-track yet")
     n_frames = len(source)
+    calib = _calibration(args, source)
+    read = source.read if calib is None else _registered_reader(source, calib)
+    if args.start is not None and not 0 <= args.start < n_frames:
+        raise UsageError(f"--start {args.start} is outside 0..{n_frames - 1}")
     start = source.first_visible if args.init is None else 0
+    if args.start is not None:
+        start = args.start
     if args.init is not None:
         box = parse_box(args.init)
+    elif args.start is not None:
+        box = None
+        if source.gt_boxes is not None and (source.visible is None or source.visible[start]):
+            box = np.asarray(source.gt_boxes[start], np.float32)
+        if box is None:
+            raise UsageError(
+                f"{source.describe()}: no ground-truth box at frame {start}; give --init x,y,w,h"
+            )
     else:
         box = source.init_box
         if box is None or start is None:
@@ -161,19 +224,42 @@ def _run(args: argparse.Namespace) -> int:
     config_kw = {}
     if args.bins is not None:
         config_kw["bins"] = parse_bins(args.bins)
-    config = ColourConfig(
-        n_particles=args.particles,
-        model=args.dynamics,
-        hierarchical=not args.no_hierarchical,
-        estimator=args.estimator,
-        resampler=args.resampler,
-        template_update=args.template_update,
-        **config_kw,
-    ).with_window((float(box[2]), float(box[3])), (source.size[1], source.size[0]))
-    params = default_colour_params()
-    if args.sigma is not None:
-        params = params._replace(sigma=jnp.float32(args.sigma))
-    filt = build_colour_filter(config)
+    frame_hw = (source.size[1], source.size[0])
+    background = None
+    if args.model == "rgb":
+        config = ColourConfig(
+            n_particles=args.particles,
+            model=args.dynamics,
+            hierarchical=not args.no_hierarchical,
+            estimator=args.estimator,
+            resampler=args.resampler,
+            template_update=args.template_update,
+            **config_kw,
+        ).with_window((float(box[2]), float(box[3])), frame_hw)
+        params = default_colour_params()
+        if args.sigma is not None:
+            params = params._replace(sigma=jnp.float32(args.sigma))
+        filt = build_colour_filter(config)
+    else:
+        from cpf_jax.kernels.background import median_background
+        from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
+
+        config = RGBDConfig(
+            variant=args.model,
+            n_particles=args.particles,
+            model=args.dynamics,
+            hierarchical=not args.no_hierarchical,
+            resampler=args.resampler,
+            **config_kw,
+        ).with_window((float(box[2]), float(box[3])), frame_hw)
+        params = default_rgbd_params(config)
+        if args.sigma is not None:
+            params = params._replace(sigma_rgb=jnp.float32(args.sigma))
+        filt = build_rgbd_filter(config)
+        bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
+        background = jax.jit(median_background)(
+            np.stack([f.colour for f in bg_frames]), np.stack([f.depth for f in bg_frames])
+        )
     init = jax.jit(filt.init)
     step = jax.jit(filt.step)
 
@@ -193,17 +279,21 @@ def _run(args: argparse.Namespace) -> int:
     try:
         state = None
         for i in range(start, stop):
-            frame_np = source.read(i)
+            frame_np = read(i)
             frame = Frame(jnp.asarray(frame_np.colour), jnp.asarray(frame_np.depth))
             key, k = jax.random.split(key)
             t0 = time.perf_counter()
             if state is None:
-                state = init(params, k, frame, jnp.asarray(box))
+                if background is None:
+                    state = init(params, k, frame, jnp.asarray(box))
+                else:
+                    state = init(params, k, frame, jnp.asarray(box), background)
                 est = np.asarray(box, np.float32)
                 ess, is_lost = float(config.n_particles), False
             else:
                 state, info = step(params, k, state, frame)
-                est = np.asarray(info.estimate)
+                # The RGB-D filters report the box to score (e.g. the visible part).
+                est = np.asarray(getattr(info, "report", info.estimate))
                 ess, is_lost = float(info.ess), bool(info.lost)
             ms = (time.perf_counter() - t0) * 1000.0
             if not np.all(np.isfinite(est)):  # never write a NaN box
@@ -221,7 +311,10 @@ def _run(args: argparse.Namespace) -> int:
         if logger is not None:
             logger.close()
 
-    print(f"tracked {n_track} frames of {source.describe()} with N={config.n_particles}")
+    print(
+        f"tracked {n_track} frames of {source.describe()} with N={config.n_particles} "
+        f"(model {args.model}{', depth registered' if calib is not None else ''})"
+    )
     if source.gt_boxes is not None:
         sel = tracked
         vis = None if source.visible is None else source.visible[sel]
@@ -232,6 +325,53 @@ def _run(args: argparse.Namespace) -> int:
     if args.rrd:
         print(f"Rerun recording written to {args.rrd}")
     return 0
+
+
+def _calibration(args: argparse.Namespace, source):
+    """The calibration in effect: ``--calib``, else the folder's ``calibration.json``.
+
+    A folder's file that is not in the registration format is ignored by the
+    colour model (it reads intrinsics from it) and an error for the RGB-D models.
+    """
+    from cpf_jax.registration import CalibrationError, calibration_from_dict, load_calibration
+
+    if args.calib is not None:
+        return load_calibration(args.calib)
+    if not getattr(source, "calibration", None):
+        return None
+    where = f"{source.path}/calibration.json" if source.path is not None else "calibration"
+    try:
+        return calibration_from_dict(source.calibration, source=where)
+    except CalibrationError:
+        if args.model == "rgb":
+            return None
+        raise
+
+
+def _registered_reader(source, calib):
+    """``read(i)`` returning frames with depth registered to colour (one jitted call)."""
+    import jax
+
+    from cpf_jax.registration import register_depth
+    from cpf_jax.types import Frame
+
+    register = jax.jit(register_depth, static_argnums=(1,))
+
+    def read(i: int) -> Frame:
+        f = source.read(i)
+        if f.depth.shape[::-1] != tuple(calib.depth_size):
+            raise UsageError(
+                f"{source.names[i]}: depth is {f.depth.shape[1]}x{f.depth.shape[0]} but the "
+                f"calibration expects {calib.depth_size[0]}x{calib.depth_size[1]}"
+            )
+        if f.colour.shape[1::-1] != tuple(calib.colour_size):
+            raise UsageError(
+                f"{source.names[i]}: colour is {f.colour.shape[1]}x{f.colour.shape[0]} but the "
+                f"calibration expects {calib.colour_size[0]}x{calib.colour_size[1]}"
+            )
+        return Frame(f.colour, np.asarray(register(f.depth, calib)))
+
+    return read
 
 
 def _log_frame(logger, i, frame_np, source, est, state, ess, ms) -> None:
