@@ -142,7 +142,7 @@ class ColourConfig:
     parts: int = 2
     # Width of the centre-surround ring scored against each particle's box, as a
     # fraction of the box size per side (0: no ring).
-    ring_margin: float = 0.15
+    ring_margin: float = 0.3
     # tau is given for a box of this height (px); every particle's noise is scaled
     # by its height / tau_height, so small and large targets diffuse alike
     # (None: tau in absolute pixels, as in the thesis).
@@ -209,7 +209,7 @@ PARAM_CONSTRAINTS = ColourParams(
     aspect_mean="softplus",
     aspect_sigma="softplus",
     tau="softplus",
-    motion=MotionParams("sigmoid", "softplus", "softplus", "softplus", "softplus"),
+    motion=MotionParams("sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid"),
     template_rate="sigmoid",
     template_max_distance="sigmoid",
     lost_distance="sigmoid",
@@ -222,7 +222,7 @@ def default_colour_params() -> ColourParams:
     return ColourParams(
         sigma=f(0.15),
         contrast_weight=f(28.0),
-        contrast_threshold=f(0.35),
+        contrast_threshold=f(0.3),
         aspect_mean=f(0.41),
         aspect_sigma=f(0.3),
         tau=jnp.asarray(DEFAULT_TAU, jnp.float32),

@@ -52,6 +52,11 @@ numerically safe form:
 * A fraction ``1 - guided_fraction`` of the particles keeps the plain ``ar1``
   noise, so the population never loses its isotropic diversity.
 
+Size noise (all models): the width and height noises are correlated with
+``motion.size_correlation`` (0: the thesis's independent noise) and the width's
+is scaled by the box's aspect / 0.41, so a box mostly grows or shrinks as a
+whole, as a person's does when the distance to the camera changes.
+
 Guidance applies on top of ``ar1`` or ``ar1_fixed`` (the models the thesis
 used it with).
 """
@@ -97,11 +102,14 @@ class MotionParams(NamedTuple):
     guide_speed: Array  # speed (px/frame) at which half of the stretch is reached (> 0)
     size_gain_x: Array  # how strongly motion along x damps size-velocity noise (>= 0)
     size_gain_y: Array  # how strongly motion along y excites size-velocity noise (>= 0)
+    # Correlation of the width and height noise (and of their velocities), in
+    # [0, 1): a person's box mostly scales as a whole when the distance changes.
+    size_correlation: Array = 0.0
 
 
 def default_motion_params() -> MotionParams:
     f = jnp.float32
-    return MotionParams(f(0.5), f(2.0), f(4.0), f(0.5), f(0.5))
+    return MotionParams(f(0.5), f(2.0), f(4.0), f(0.5), f(0.5), f(0.8))
 
 
 def _ar1(particles: Array, noise: Array) -> Array:
@@ -174,7 +182,16 @@ def propagate(
         raise ValueError(f"unknown motion model {model!r}; expected one of {MODELS}")
     k_noise, k_guide = jax.random.split(key)
     tau = jnp.asarray(tau, jnp.float32)
-    noise = jax.random.normal(k_noise, particles.shape, jnp.float32) * tau
+    z = jax.random.normal(k_noise, particles.shape, jnp.float32)
+    # Correlated size noise: width noise = rho * (height's normal) + sqrt(1 - rho^2) * own,
+    # scaled by the box's aspect so that w and h change in proportion.
+    rho = jnp.clip(jnp.asarray(motion.size_correlation, jnp.float32), 0.0, 0.999)
+    aspect = particles[:, 4] / jnp.maximum(particles[:, 5], 1e-3)
+    mix = jnp.sqrt(1.0 - rho * rho)
+    zw = (rho * z[:, 5] + mix * z[:, 4]) * jnp.where(rho > 0, aspect / 0.41, 1.0)
+    zvw = (rho * z[:, 7] + mix * z[:, 6]) * jnp.where(rho > 0, aspect / 0.41, 1.0)
+    z = z.at[:, 4].set(zw).at[:, 6].set(zvw)
+    noise = z * tau
     if scale is not None:
         noise = noise * jnp.asarray(scale, jnp.float32)[:, None]
     fixed = model.endswith("_fixed")

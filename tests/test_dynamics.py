@@ -48,10 +48,23 @@ def test_random_walk_has_no_velocity():
 
 def test_ar1_noise_scales_are_tau():
     n = 20_000
+    independent = MP._replace(size_correlation=jnp.float32(0.0))
     out = np.asarray(propagate(KEY, jnp.tile(STATE, (n, 1)), jnp.tile(PREV, (n, 1)),
-                               jnp.asarray(THESIS_TAU), MP, model="ar1"))
+                               jnp.asarray(THESIS_TAU), independent, model="ar1"))
     # position gets n1 (tau=10) only; velocity n3 (tau=1)
     np.testing.assert_allclose(out.std(axis=0), THESIS_TAU, rtol=0.03)
+
+
+def test_correlated_size_noise_scales_width_and_height_together():
+    n = 20_000
+    mp = MP._replace(size_correlation=jnp.float32(0.8))
+    state = jnp.tile(jnp.array([[100.0, 80.0, 0.0, 0.0, 41.0, 100.0, 0.0, 0.0]]), (n, 1))
+    tau = jnp.array([1.0, 1, 1, 1, 2, 2, 0.5, 0.5])
+    out = np.asarray(propagate(KEY, state, state, tau, mp, model="ar1"))
+    dw, dh = out[:, 4] - 41.0, out[:, 5] - 100.0
+    assert abs(np.corrcoef(dw, dh)[0, 1] - 0.8) < 0.02
+    np.testing.assert_allclose([dw.std(), dh.std()], [2.0, 2.0], rtol=0.03)  # aspect 0.41
+    np.testing.assert_allclose(np.corrcoef(out[:, 6], out[:, 7])[0, 1], 0.8, atol=0.02)
 
 
 def test_guidance_stretches_along_motion_and_keeps_stationary_isotropic():
