@@ -10,8 +10,8 @@ Kinect-v2 frame of a person walking towards the camera):
   shift(d) + w)`` until nothing changes, checked every 4 passes);
 * spin images for N = 100 and 1,000 query pixels over all body points (bins
   of one mesh resolution, width 20, support angle 60 deg): ``spin_images``
-  (per-query 81 x 81 patch, one scatter of bilinear 4-vectors) vs a NumPy loop
-  over queries, vectorised over all points (``np.add.at``).
+  (per-query patch sized by ``support_patch_radius``, one scatter of
+  bilinear 4-vectors) vs a NumPy loop over queries, vectorised over all points (``np.add.at``).
 
 Results are checked for equality before timing. Writes
 ``experiments/results/bench_depth.json`` and ``bench_depth.md``.
@@ -74,8 +74,13 @@ def body_window(frame_index: int = 190):
     x, y, w, h = seq.boxes[frame_index]
     # A 256 x 192 crop centred on the person at scale 1 (the box is the window itself).
     box = jnp.array([x + w / 2 - 96, y + h / 2 - 128, 192, 256], jnp.float32)
-    cfg = PointFilterConfig(window=WINDOW, box_margin=0.0, threshold_depth_mm=None,
-                            seg_max_dz_mm=SEG_MM, surface_max_dist_mm=SURF_MM)
+    cfg = PointFilterConfig(
+        window=WINDOW,
+        box_margin=0.0,
+        threshold_depth_mm=None,
+        seg_max_dz_mm=SEG_MM,
+        surface_max_dist_mm=SURF_MM,
+    )
     bm = jax.jit(lambda d, b: body_model(cfg, d, b))(depth, box)
     assert float(bm.window.scale) == 1.0
     return bm, float(np.linalg.norm(seq.joints3d[frame_index, 0]))
@@ -94,15 +99,16 @@ def scipy_geodesic(points: np.ndarray, mask: np.ndarray, source: int, max_dist: 
         r0, r1 = 0, h - dr
         c0, c1 = max(0, -dc), w - max(0, dc)
         a = points[r0:r1, c0:c1]
-        b = points[r0 + dr:r1 + dr, c0 + dc:c1 + dc]
-        ok = mask[r0:r1, c0:c1] & mask[r0 + dr:r1 + dr, c0 + dc:c1 + dc]
+        b = points[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
+        ok = mask[r0:r1, c0:c1] & mask[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
         dist = np.sqrt(((a - b) ** 2).sum(-1))
         ok &= dist <= max_dist
         ii.append(idx[r0:r1, c0:c1][ok])
-        jj.append(idx[r0 + dr:r1 + dr, c0 + dc:c1 + dc][ok])
+        jj.append(idx[r0 + dr : r1 + dr, c0 + dc : c1 + dc][ok])
         ww.append(dist[ok])
-    g = sp.coo_matrix((np.concatenate(ww), (np.concatenate(ii), np.concatenate(jj))),
-                      shape=(h * w, h * w)).tocsr()
+    g = sp.coo_matrix(
+        (np.concatenate(ww), (np.concatenate(ii), np.concatenate(jj))), shape=(h * w, h * w)
+    ).tocsr()
     return csg.dijkstra(g, directed=False, indices=source).reshape(h, w)
 
 
@@ -160,8 +166,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--numpy-repeats", type=int, default=5)
-    ap.add_argument("--stat", choices=("min", "median"), default="min",
-                    help="best-of-N (default; the machine is shared) or median wall time")
+    ap.add_argument(
+        "--stat",
+        choices=("min", "median"),
+        default="min",
+        help="best-of-N (default; the machine is shared) or median wall time",
+    )
     args = ap.parse_args()
     global STAT
     STAT = args.stat
@@ -184,8 +194,9 @@ def main() -> None:
     geo_only = jax.jit(lambda w, s: gk.geodesic_distances(w, s))
     jac = jax.jit(jacobi_geodesic)
     d_ours, sweeps = ours(points, body, src)
-    d_ref = scipy_geodesic(points.astype(np.float64), body, int(src_rc[0] * WINDOW[1] + src_rc[1]),
-                           SURF_MM)
+    d_ref = scipy_geodesic(
+        points.astype(np.float64), body, int(src_rc[0] * WINDOW[1] + src_rc[1]), SURF_MM
+    )
     d_jac, passes = jac(weights, src)
     d_ours = np.asarray(d_ours)
     fin = np.isfinite(d_ref) & (d_ref > 0)
@@ -199,8 +210,15 @@ def main() -> None:
     jacobi_ms = timed(jac, weights, src, repeats=max(5, args.repeats // 3), label="jacobi")
     p64 = points.astype(np.float64)
     src_flat = int(src_rc[0] * WINDOW[1] + src_rc[1])
-    scipy_ms = timed(scipy_geodesic, p64, body, src_flat, SURF_MM,
-                     repeats=args.numpy_repeats * 4, label="scipy graph+dijkstra")
+    scipy_ms = timed(
+        scipy_geodesic,
+        p64,
+        body,
+        src_flat,
+        SURF_MM,
+        repeats=args.numpy_repeats * 4,
+        label="scipy graph+dijkstra",
+    )
 
     # ---- spin images
     normals = np.asarray(bm.normals)
@@ -208,22 +226,47 @@ def main() -> None:
     bin_size = float(bm.mesh_resolution)
     vr, vc = np.nonzero(valid)
     rng = np.random.default_rng(0)
+    # Patch just large enough for the support at the nearest body depth (kernels.spin).
+    z_near = float(np.nanmin(np.where(valid, points[..., 2], np.nan)))
+    fx = float(PointFilterConfig().intrinsics[0])
+    radius = sk.support_patch_radius(bin_size, 20, z_near, fx)
     spin = {}
     for n in (100, 1000):
         pick = rng.choice(len(vr), n, replace=False)
         q = np.stack([vr[pick], vc[pick]], -1).astype(np.int32)
-        f = jax.jit(lambda q_: sk.spin_images(bm.points, bm.normals, bm.spin_valid, q_, bin_size,
-                                              patch_radius=40, batch_size=32))
+        f = jax.jit(
+            lambda q_: sk.spin_images(
+                bm.points,
+                bm.normals,
+                bm.spin_valid,
+                q_,
+                bin_size,
+                patch_radius=radius,
+                batch_size=32,
+            )
+        )
         imgs, complete = f(jnp.asarray(q))
         ref = spin_numpy(points, normals, valid, q, bin_size)
         err = float(np.abs(np.asarray(imgs) - ref).max())
         reps = args.repeats if n == 100 else max(5, args.repeats // 2)
         ms = timed(f, jnp.asarray(q), repeats=reps, label=f"spin n={n}")
-        numpy_ms = timed(spin_numpy, points, normals, valid, q, bin_size,
-                         repeats=args.numpy_repeats if n == 100 else 3, label=f"numpy spin n={n}")
-        spin[n] = dict(ms=ms, numpy_ms=numpy_ms, max_abs_err=err,
-                       complete=float(np.mean(np.asarray(complete))),
-                       max_bin=float(ref.max()))
+        numpy_ms = timed(
+            spin_numpy,
+            points,
+            normals,
+            valid,
+            q,
+            bin_size,
+            repeats=args.numpy_repeats if n == 100 else 3,
+            label=f"numpy spin n={n}",
+        )
+        spin[n] = dict(
+            ms=ms,
+            numpy_ms=numpy_ms,
+            max_abs_err=err,
+            complete=float(np.mean(np.asarray(complete))),
+            max_bin=float(ref.max()),
+        )
 
     load_after = os.getloadavg()
     result = {
@@ -247,7 +290,8 @@ def main() -> None:
             "jacobi_max_rel_diff": jac_rel,
             "spin_bin_size_mm": round(bin_size, 3),
             "spin_width": 20,
-            "spin_patch": "81 x 81 (radius 40)",
+            "spin_patch": f"{2 * radius + 1} x {2 * radius + 1} (radius {radius}, nearest "
+            f"body depth {z_near:.0f} mm, fx {fx:.0f})",
             "spin_max_abs_err_n100": spin[100]["max_abs_err"],
             "spin_max_abs_err_n1000": spin[1000]["max_abs_err"],
             "spin_complete_fraction_n1000": spin[1000]["complete"],
@@ -263,8 +307,12 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "bench_depth.json").write_text(json.dumps(result, indent=2) + "\n")
     rows = [
-        ("geodesic (graph build + distances)", geodesic_ms, scipy_ms,
-         "NumPy graph + scipy dijkstra"),
+        (
+            "geodesic (graph build + distances)",
+            geodesic_ms,
+            scipy_ms,
+            "NumPy graph + scipy dijkstra",
+        ),
         ("spin images, N = 100", spin[100]["ms"], spin[100]["numpy_ms"], "NumPy loop"),
         ("spin images, N = 1,000", spin[1000]["ms"], spin[1000]["numpy_ms"], "NumPy loop"),
     ]

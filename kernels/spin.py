@@ -40,6 +40,7 @@ from jax import Array, lax
 
 __all__ = [
     "spin_coordinates",
+    "support_patch_radius",
     "spin_images",
     "overlap_count",
     "spin_correlation",
@@ -59,8 +60,23 @@ def spin_coordinates(points: Array, p: Array, n: Array) -> tuple[Array, Array]:
     return alpha, beta
 
 
-def _spin_one(feat: Array, q: Array, bin_size: Array, width: int, cos_support: float,
-              radius: int) -> tuple[Array, Array]:
+def support_patch_radius(bin_size: float, width: int, z_near_mm: float, focal_px: float) -> int:
+    """The smallest ``patch_radius`` holding the support of any query at depth >= ``z_near_mm``.
+
+    The support reaches ``bin_size * sqrt((width - 1)^2 + (width / 2)^2)`` mm from
+    the query point; a pixel offset of ``k`` pixels at depth ``z`` is at least
+    ``k * z / focal_px`` mm away laterally, so the support spans at most that
+    distance over ``z_near_mm / focal_px`` pixels (one pixel of slack). Pure
+    Python (static): call it outside ``jit``; ``complete`` still checks it.
+    """
+    reach = float(bin_size) * math.hypot(width - 1, width / 2)
+    pitch = float(z_near_mm) / float(focal_px)
+    return int(math.ceil(reach / pitch)) + 1
+
+
+def _spin_one(
+    feat: Array, q: Array, bin_size: Array, width: int, cos_support: float, radius: int
+) -> tuple[Array, Array]:
     """One spin image from a padded ``feat [6, H + 2R, W + 2R]`` (xyz, normal; NaN = invalid)."""
     side = 2 * radius + 1
     patch = lax.dynamic_slice(feat, (0, q[0], q[1]), (6, side, side)).reshape(6, side * side)
@@ -90,17 +106,31 @@ def _spin_one(feat: Array, q: Array, bin_size: Array, width: int, cos_support: f
     # One scatter of 4-vectors into the (width-1)^2 cells (one dump row for misses) ...
     h4 = jnp.zeros((m * m + 1, 4), jnp.float32).at[idx].add(vals)[:-1].reshape(m, m, 4)
     # ... then each corner histogram is shifted into place.
-    img = (jnp.pad(h4[..., 0], ((0, 1), (0, 1))) + jnp.pad(h4[..., 1], ((0, 1), (1, 0)))
-           + jnp.pad(h4[..., 2], ((1, 0), (0, 1))) + jnp.pad(h4[..., 3], ((1, 0), (1, 0))))
+    img = (
+        jnp.pad(h4[..., 0], ((0, 1), (0, 1)))
+        + jnp.pad(h4[..., 1], ((0, 1), (1, 0)))
+        + jnp.pad(h4[..., 2], ((1, 0), (0, 1)))
+        + jnp.pad(h4[..., 3], ((1, 0), (1, 0)))
+    )
     border = inside.reshape(side, side)
-    touches = (jnp.any(border[0]) | jnp.any(border[-1]) | jnp.any(border[:, 0])
-               | jnp.any(border[:, -1]))
+    touches = (
+        jnp.any(border[0]) | jnp.any(border[-1]) | jnp.any(border[:, 0]) | jnp.any(border[:, -1])
+    )
     return img, ~touches
 
 
-def spin_images(points: Array, normals: Array, valid: Array, queries: Array, bin_size: Array, *,
-                width: int = 20, support_angle_deg: float = 60.0, patch_radius: int = 32,
-                batch_size: int = 32) -> tuple[Array, Array]:
+def spin_images(
+    points: Array,
+    normals: Array,
+    valid: Array,
+    queries: Array,
+    bin_size: Array,
+    *,
+    width: int = 20,
+    support_angle_deg: float = 60.0,
+    patch_radius: int = 32,
+    batch_size: int = 32,
+) -> tuple[Array, Array]:
     """Spin images of query pixels over the valid points of a depth window.
 
     points / normals: ``[H, W, 3]`` mm / unit vectors; valid: ``[H, W] bool``

@@ -109,8 +109,9 @@ def test_spin_images_vmap_over_surfaces(surface):
     p2, n2, valid2, mres2 = blob_surface(seed=1, z0=1400.0)
     q = np.array([[24, 20], [15, 25]])
     f = jax.vmap(lambda a, b, c, d: sk.spin_images(a, b, c, q, d, patch_radius=40)[0])
-    out = np.asarray(f(np.stack([p, p2]), np.stack([n, n2]), np.stack([valid, valid2]),
-                       jnp.array([mres, mres2])))
+    out = np.asarray(
+        f(np.stack([p, p2]), np.stack([n, n2]), np.stack([valid, valid2]), jnp.array([mres, mres2]))
+    )
     np.testing.assert_allclose(out[0], spin_loop(p, n, valid, q, mres), atol=2e-3, rtol=1e-4)
     np.testing.assert_allclose(out[1], spin_loop(p2, n2, valid2, q, mres2), atol=2e-3, rtol=1e-4)
 
@@ -126,6 +127,20 @@ def test_small_patch_is_flagged_incomplete(surface):
     imgs, complete = sk.spin_images(p, n, valid, q, 0.3 * mres, patch_radius=12)
     assert np.asarray(complete).all()
     np.testing.assert_allclose(np.asarray(imgs), spin_loop(p, n, valid, q, 0.3 * mres), atol=2e-3)
+
+
+def test_support_patch_radius_holds_the_whole_support(surface):
+    p, n, valid, mres = surface
+    bin_size = 0.5 * mres
+    z_near = float(p[..., 2][valid].min())
+    r = sk.support_patch_radius(bin_size, 20, z_near, FX)
+    q = np.array([[24, 20], [20, 15], [30, 25]])
+    imgs, complete = sk.spin_images(p, n, valid, q, bin_size, patch_radius=r)
+    assert np.asarray(complete).all()
+    np.testing.assert_allclose(np.asarray(imgs), spin_loop(p, n, valid, q, bin_size), atol=2e-3)
+    # A third of it cuts the support short (the bound is not vacuous).
+    _, complete = sk.spin_images(p, n, valid, q, bin_size, patch_radius=r // 3)
+    assert not np.asarray(complete).any()
 
 
 def test_correlation_and_similarity_match_numpy():
