@@ -696,6 +696,13 @@ def box_log_density(params: RGBDParams, fg_sum: Array, area_sum: Array) -> Array
 # ----------------------------------------------------------------------------- the filter
 
 
+def _kept_lines(counts: Array, min_pixels: Array) -> Array:
+    """``counts [L]`` target pixels per column (row) -> ``[L]`` bool: the line has one and
+    the line with its two neighbours hold at least ``min_pixels``."""
+    window = jnp.convolve(counts, jnp.ones((3,), counts.dtype), mode="same")
+    return (counts > 0) & (window >= min_pixels)
+
+
 def build_rgbd_filter(config: RGBDConfig) -> Filter:
     """``Filter(init, step)`` of ``config.variant``.
 
@@ -851,8 +858,11 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         rows = jnp.arange(height, dtype=jnp.float32) + 0.5
         inside = ((rows >= y0) & (rows < y1))[:, None] & ((cols >= x0) & (cols < x1))[None]
         t = (like & inside).astype(jnp.float32)
-        col_n = jnp.sum(t, axis=0) >= params.report_min_pixels
-        row_n = jnp.sum(t, axis=1) >= params.report_min_pixels
+        # A column / row counts when it and its two neighbours hold report_min_pixels
+        # target pixels: isolated noise pixels drop out, a 1 px wide arm or leg (a sliver
+        # at an occluder's edge, one pixel per row) stays.
+        col_n = _kept_lines(jnp.sum(t, axis=0), params.report_min_pixels)
+        row_n = _kept_lines(jnp.sum(t, axis=1), params.report_min_pixels)
         ok = jnp.any(col_n) & jnp.any(row_n)
         big = jnp.float32(1e9)
         bx0 = jnp.min(jnp.where(col_n, cols - 0.5, big))
