@@ -77,7 +77,9 @@ from cpf_jax.kernels.histogram import (
     DEFAULT_BINS,
     bhattacharyya,
     box_histograms,
+    integral_image,
     rect_reduce,
+    rect_sums,
     suggest_window,
 )
 from cpf_jax.types import Filter, Frame
@@ -134,6 +136,14 @@ class ColourConfig:
     # Static (h, w) window of the fast exact histogram path (None: whole-frame
     # tables, slower). ``with_window`` picks one from the initial box.
     window: tuple[int, int] | None = None
+    # With a window: place it on the cloud's (weighted) mean centre every frame
+    # and keep the particle centres inside it (the motion noise is truncated at
+    # the window's edge, which ``with_window`` puts about 4 standard deviations
+    # of the position noise out). Every step then takes the fast exact path;
+    # a lost target's frame-wide search and boxes larger than the window fall
+    # back to the exact whole-frame path. False: the window follows the cloud's
+    # extent and any particle outside it triggers the fallback.
+    contain: bool = True
     # Surround ring of the colour-contrast model: the initial box grown by this
     # fraction of its size on every side.
     surround_margin: float = 0.5
@@ -170,17 +180,37 @@ class ColourConfig:
         return n_bins_of(self.bins)
 
     def with_window(
-        self, box_wh: tuple[float, float], frame_hw: tuple[int, int], growth: float = 1.5
+        self,
+        box_wh: tuple[float, float],
+        frame_hw: tuple[int, int],
+        growth: float = 1.1,
+        spread: float | None = None,
+        n_std: float | None = None,
     ) -> ColourConfig:
         """This config with a histogram window sized for a box of ``box_wh`` in a frame.
 
-        The window covers the box grown by ``growth`` plus the particle cloud
-        (8 standard deviations of ``tau_x = 10`` px). A cloud that outgrows it
-        (a person walking close, a lost target's global search) still gets
-        exact distances through the kernel's whole-frame fallback, only slower.
+        The window covers the box grown by ``growth`` (and the kernel's 10 %
+        size margin) plus ``n_std`` standard deviations ``spread`` of the
+        particle centres: by default the default position noise
+        ``DEFAULT_TAU[0]`` (scaled to the box's height when ``tau_height`` is
+        set) and 6 standard deviations (+-3) when ``contain`` keeps the centres
+        inside it, else the expected range of N normal samples. Boxes
+        outgrowing it (a person walking close) and a lost target's frame-wide
+        search still get exact histograms through the kernel's whole-frame
+        fallback, only slower.
         """
-        w, h = (float(v) * growth * (1 + 2 * self.ring_margin) for v in box_wh)
-        window = suggest_window((w, h), 10.0, (int(frame_hw[0]), int(frame_hw[1])))
+        w, h = (float(v) * growth for v in box_wh)
+        if spread is None:
+            spread = DEFAULT_TAU[0] * (1.0 if self.tau_height is None else h / self.tau_height)
+        if n_std is None and self.contain:
+            n_std = 6.0
+        window = suggest_window(
+            (w, h),
+            spread,
+            (int(frame_hw[0]), int(frame_hw[1])),
+            n_particles=self.n_particles,
+            n_std=n_std,
+        )
         return dataclasses.replace(self, window=window)
 
 
@@ -312,6 +342,23 @@ def contrast_weights(
     return inside / (inside + ring + k) - threshold
 
 
+#: Contrast weights are summed as integers in units of 1 / CONTRAST_SCALE, so the
+#: box sums are exact (|weight| <= 1: a whole 512 x 424 frame stays below 2^31).
+CONTRAST_SCALE = 4096.0
+
+
+def contrast_table(bin_idx: Array, contrast: Array) -> Array:
+    """Summed-area table ``[H+1, W+1, 2] int32`` of every pixel's contrast weight
+    (channel 0) and of its positive part (channel 1, the person-coloured pixels of
+    the centre-surround ring), in units of ``1 / CONTRAST_SCALE``. Pixels with no
+    bin weigh 0."""
+    w = jnp.stack([contrast, jnp.maximum(contrast, 0.0)], axis=-1)
+    w = jnp.round(w * CONTRAST_SCALE).astype(jnp.int32)  # [B, 2]
+    ok = (bin_idx >= 0) & (bin_idx < contrast.shape[0])
+    values = jnp.where(ok[..., None], w[jnp.clip(bin_idx, 0, contrast.shape[0] - 1)], 0)
+    return integral_image(values)
+
+
 def _to_xywh(particles: Array) -> Array:
     return box_ops.cxcywh_to_xywh(particles[..., jnp.array([0, 1, 4, 5])])
 
@@ -346,6 +393,27 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         cx = jnp.clip(particles[:, 0], 0.0, width)
         cy = jnp.clip(particles[:, 1], 0.0, height)
         return particles.at[:, 0].set(cx).at[:, 1].set(cy).at[:, 4].set(w).at[:, 5].set(h)
+
+    def contain(
+        particles: Array, log_weights: Array, lost: Array, width: int, height: int
+    ) -> tuple[Array, Array]:
+        """Window origin ``(oy, ox)`` on the cloud's weighted mean, boxes kept inside it
+        (one pixel of slack for corner rounding); unchanged while the target is lost."""
+        wh, ww = min(config.window[0], height), min(config.window[1], width)
+        w = jax.nn.softmax(log_weights)
+        mean = w @ particles[:, :2]
+        ox = jnp.clip(jnp.round(mean[0] - ww / 2), 0, width - ww)
+        oy = jnp.clip(jnp.round(mean[1] - wh / 2), 0, height - wh)
+        # A window edge on the frame's edge does not bound the boxes: the part of a
+        # box beyond the frame is clipped away before counting anyway.
+        half = particles[:, 4:6] / 2 + 1.0
+        lo = jnp.where(jnp.stack([ox, oy]) > 0, jnp.stack([ox, oy]) + half, -jnp.inf)
+        far = jnp.stack([ox + ww, oy + wh])
+        hi = jnp.where(far < jnp.array([width, height]), far - half, jnp.inf)
+        inside = jnp.where(lo <= hi, jnp.clip(particles[:, :2], lo, hi), particles[:, :2])
+        kept = particles.at[:, :2].set(inside)
+        particles = jnp.where(lost, particles, kept)
+        return particles, jnp.stack([oy, ox]).astype(jnp.int32)
 
     def init(params: ColourParams, key: Array, frame: Frame, box_xywh: Array) -> ColourState:
         box = jnp.asarray(box_xywh, jnp.float32)
@@ -394,6 +462,9 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             fresh = particles.at[:, :2].set(centres).at[:, 2:4].set(0.0)
             particles = jnp.where((redraw & state.lost)[:, None], fresh, particles)
         particles = clamp(particles, width, height)
+        origin = None
+        if config.window is not None and config.contain:
+            particles, origin = contain(particles, state.log_weights, state.lost, width, height)
 
         bin_idx = bin_index(frame.colour, config.bins)
         sqrt_q = jnp.sqrt(state.reference)  # [K, B]
@@ -401,39 +472,35 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         # its scale does not change as the person comes closer.
         area = jnp.maximum(state.estimate[2] * state.estimate[3], 1.0)
 
-        k = config.parts
-        positive = jnp.maximum(state.contrast, 0.0)
-
-        def distance_and_contrast(counts: Array) -> Array:
-            # counts [c, K(+1), B] -> [c, 2]: mean squared part distance, contrast score
-            parts = counts[:, :k]
-            total = jnp.sum(parts, axis=-1)
+        def part_distances(counts: Array) -> Array:
+            # counts [c, K, B] -> [c]: mean squared Bhattacharyya distance of the parts
+            total = jnp.sum(counts, axis=-1)
             norm = jax.lax.rsqrt(jnp.maximum(total, 1.0))
-            bc = jnp.sum(jnp.sqrt(parts) * sqrt_q, axis=-1) * norm
+            bc = jnp.sum(jnp.sqrt(counts) * sqrt_q, axis=-1) * norm
             d2 = jnp.where(total > 0, jnp.clip(1.0 - bc, 0.0, 1.0), 1.0)
-            inside = jnp.sum(parts, axis=-2)
-            score = inside @ state.contrast
-            if config.ring_margin > 0:
-                # Centre-surround: person-coloured pixels just outside the box
-                # count against it, so a box smaller than the person loses.
-                ring = jnp.maximum(jnp.sum(counts[:, k:], axis=-2) - inside, 0.0)
-                score = score - ring @ positive
-            return jnp.stack([jnp.mean(d2, axis=-1), score / area], axis=-1)
+            return jnp.mean(d2, axis=-1)
 
         boxes_xywh = _to_xywh(particles)
         rects = box_ops.xywh_to_rect(box_parts(boxes_xywh, config.parts))
+        d2 = rect_reduce(
+            bin_idx, rects, part_distances, n_bins=n_bins, window=config.window, origin=origin
+        )
+        # The contrast terms are linear in the counts: per-pixel weights summed
+        # over the box (and the ring) from a two-channel summed-area table of the
+        # whole frame, so the histogram window only has to hold the boxes.
+        table = contrast_table(bin_idx, state.contrast)
+        sums = rect_sums(table, box_ops.xywh_to_rect(boxes_xywh)) / CONTRAST_SCALE
+        score = sums[:, 0]
         if config.ring_margin > 0:
+            # Centre-surround: person-coloured pixels just outside the box count
+            # against it, so a box smaller than the person loses.
             m = config.ring_margin
             grow = jnp.array([-m, -m, 2 * m, 2 * m], jnp.float32)
             grown = boxes_xywh + grow * boxes_xywh[:, jnp.array([2, 3, 2, 3])]
-            # The grown box as two stripes: each stays under the 65,536-pixel
-            # limit of the fast uint16 tables for any box up to ~77k pixels.
-            grown_rects = box_ops.xywh_to_rect(box_parts(grown, 2))
-            rects = jnp.concatenate([rects, grown_rects], axis=1)
-        out = rect_reduce(
-            bin_idx, rects, distance_and_contrast, n_bins=n_bins, window=config.window
-        )
-        d2, score = out[:, 0], out[:, 1]
+            grown_sums = rect_sums(table, box_ops.xywh_to_rect(grown)) / CONTRAST_SCALE
+            score = score - (grown_sums[:, 1] - sums[:, 1])
+        score = score / area
+
         d = jnp.sqrt(d2)
         log_lik = -d2 / (2.0 * params.sigma * params.sigma) + params.contrast_weight * score
         if config.aspect_prior:

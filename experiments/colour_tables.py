@@ -89,7 +89,7 @@ def _window_config(config: ColourConfig, name: str) -> ColourConfig:
     """The config with a histogram window sized from the scenario's first scene."""
     seq, _ = _sequence(name, 0)
     box_wh = tuple(float(v) for v in seq.boxes[0, 2:])
-    return config.with_window(box_wh, seq.colour.shape[1:3], growth=1.8)
+    return config.with_window(box_wh, seq.colour.shape[1:3])
 
 
 def success_rates(name: str, scene_seeds, keys: int, config: ColourConfig, params) -> list[float]:

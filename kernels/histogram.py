@@ -104,6 +104,8 @@ __all__ = [
     "DEFAULT_BINS",
     "hs_histogram_bins",
     "integral_histogram",
+    "integral_image",
+    "rect_sums",
     "window_origin",
     "window_covers",
     "suggest_window",
@@ -144,6 +146,33 @@ def hs_histogram_bins(colour: Array, bins: tuple[int, int] = DEFAULT_BINS) -> Ar
 # ----------------------------------------------------------------------------- integral table
 
 
+def _prefix_sums_yx(table: Array) -> Array:
+    """In-place 2D prefix sums of ``table [h + 1, w + 1, c]`` (row 0 / column 0 are zero).
+
+    Rows first (each step adds one contiguous row to the next), then columns:
+    XLA updates the loop-carried buffer in place, without copies. Measured on
+    2 CPU cores this order is as fast or faster than columns first and less
+    sensitive to the table's size (the column pass then reads rows already
+    summed, in cache order).
+    """
+
+    def along_y(y, t):
+        row = lax.dynamic_slice_in_dim(t, y, 1, axis=0) + lax.dynamic_slice_in_dim(
+            t, y + 1, 1, axis=0
+        )
+        return lax.dynamic_update_slice_in_dim(t, row, y + 1, axis=0)
+
+    def along_x(x, t):
+        col = lax.dynamic_slice_in_dim(t, x, 1, axis=1) + lax.dynamic_slice_in_dim(
+            t, x + 1, 1, axis=1
+        )
+        return lax.dynamic_update_slice_in_dim(t, col, x + 1, axis=1)
+
+    h, w = table.shape[0] - 1, table.shape[1] - 1
+    table = lax.fori_loop(0, h, along_y, table)
+    return lax.fori_loop(0, w, along_x, table)
+
+
 def integral_histogram(bins: Array, n_bins: int, dtype=jnp.uint16) -> Array:
     """``[h, w] int32`` bins -> ``[h+1, w+1, n_bins]`` integral histogram.
 
@@ -155,22 +184,26 @@ def integral_histogram(bins: Array, n_bins: int, dtype=jnp.uint16) -> Array:
     h, w = bins.shape
     one_hot = bins[..., None] == jnp.arange(n_bins, dtype=bins.dtype)
     table = jnp.zeros((h + 1, w + 1, n_bins), dtype).at[1:, 1:].set(one_hot.astype(dtype))
+    return _prefix_sums_yx(table)
 
-    # In-place prefix sums: XLA updates the loop-carried buffer without copies.
-    def along_x(x, t):
-        col = lax.dynamic_slice_in_dim(t, x, 1, axis=1) + lax.dynamic_slice_in_dim(
-            t, x + 1, 1, axis=1
-        )
-        return lax.dynamic_update_slice_in_dim(t, col, x + 1, axis=1)
 
-    def along_y(y, t):
-        row = lax.dynamic_slice_in_dim(t, y, 1, axis=0) + lax.dynamic_slice_in_dim(
-            t, y + 1, 1, axis=0
-        )
-        return lax.dynamic_update_slice_in_dim(t, row, y + 1, axis=0)
+def integral_image(values: Array) -> Array:
+    """``[h, w, c]`` values -> ``[h+1, w+1, c]`` summed-area tables (``T[y, x]`` = sum over
+    ``[0, x) x [0, y)``), in the dtype of ``values``. Integer values give exact sums
+    (int32: while the frame's total magnitude stays below 2^31)."""
+    h, w, c = values.shape
+    table = jnp.zeros((h + 1, w + 1, c), values.dtype).at[1:, 1:].set(values)
+    return _prefix_sums_yx(table)
 
-    table = lax.fori_loop(0, w, along_x, table)
-    return lax.fori_loop(0, h, along_y, table)
+
+def rect_sums(table: Array, rects: Array) -> Array:
+    """Sums ``[..., c]`` of the values under ``rects [..., 4] (x0, y0, x1, y1)`` from an
+    ``integral_image`` table ``[h+1, w+1, c]``; rects are clipped to the frame (an
+    empty or outside rect sums to 0)."""
+    height, width = table.shape[0] - 1, table.shape[1] - 1
+    r = clip_rect(jnp.asarray(rects, jnp.int32), width, height)
+    x0, y0, x1, y1 = (r[..., i] for i in range(4))
+    return table[y1, x1] - table[y0, x1] - table[y1, x0] + table[y0, x0]
 
 
 # ----------------------------------------------------------------------------- window placement
@@ -243,19 +276,24 @@ def suggest_window(
     n_particles: int | None = None,
     size_margin: float = 0.1,
     quantum: int = 16,
+    n_std: float | None = None,
 ) -> tuple[int, int]:
     """A static window ``(wh, ww)`` for a cloud of particle boxes around ``box_wh = (w, h)``.
 
     Covers the box grown by ``size_margin`` plus the extent of the centres,
     taken as ``2 * sqrt(2 ln N)`` standard deviations ``spread`` (pixels): the
     expected range of N normal samples, so that the exact fallback stays rare
-    for every N (8 standard deviations when ``n_particles`` is None). Rounded
-    up to ``quantum``, capped at the frame. Pure Python: call it outside ``jit``.
+    for every N (8 standard deviations when ``n_particles`` is None), or
+    ``n_std`` standard deviations when given (a filter that keeps its particles
+    inside the window). Rounded up to ``quantum``, capped at the frame. Pure
+    Python: call it outside ``jit``.
     """
     w, h = box_wh
     fh, fw = frame_shape
-    n_std = 8.0 if n_particles is None else 2.0 * math.sqrt(2.0 * math.log(max(n_particles, 2)))
-    n_std = max(n_std, 4.0)
+    if n_std is None:
+        n = n_particles
+        n_std = 8.0 if n is None else 2.0 * math.sqrt(2.0 * math.log(max(n, 2)))
+        n_std = max(n_std, 4.0)
     ww = math.ceil((w * (1 + size_margin) + n_std * spread) / quantum) * quantum
     wh = math.ceil((h * (1 + size_margin) + n_std * spread) / quantum) * quantum
     return min(int(wh), fh), min(int(ww), fw)

@@ -8,14 +8,18 @@ import numpy as np
 import pytest
 
 from cpf_jax.colour import (
+    CONTRAST_SCALE,
     ColourConfig,
+    bin_index,
     build_colour_filter,
+    contrast_table,
     default_colour_params,
     reference_histogram,
     track,
     track_boxes,
 )
-from cpf_jax.kernels.boxes import iou
+from cpf_jax.kernels.boxes import iou, xywh_to_rect
+from cpf_jax.kernels.histogram import box_histograms, rect_sums
 from cpf_jax.types import Frame
 
 H, W = 120, 160
@@ -161,3 +165,33 @@ def test_config_validation():
         ColourConfig(n_particles=0)
     with pytest.raises(ValueError, match="estimator"):
         ColourConfig(estimator="median")
+
+
+def test_contrast_sums_equal_histogram_dot_weights(seq):
+    """The contrast table gives each box's ``counts @ weights`` (to 1 / 4096 per pixel)."""
+    frames, _ = seq
+    idx = bin_index(frames.colour[0], CONFIG.bins)
+    weights = jnp.asarray(np.random.default_rng(0).uniform(-0.4, 0.6, CONFIG.n_bins), jnp.float32)
+    boxes = jnp.array([[30, 35, 20, 50], [-5, 10, 40, 40], [150, 100, 30, 30], [0, 0, 160, 120.0]])
+    rects = xywh_to_rect(boxes)
+    counts = box_histograms(idx, rects, CONFIG.n_bins)
+    sums = jax.jit(lambda i, w, r: rect_sums(contrast_table(i, w), r))(idx, weights, rects)
+    area = np.asarray(counts.sum(-1))
+    tol = area / (2 * CONTRAST_SCALE) + 1e-3
+    got = np.asarray(sums) / CONTRAST_SCALE
+    assert (np.abs(got[:, 0] - np.asarray(counts @ weights)) <= tol).all()
+    assert (np.abs(got[:, 1] - np.asarray(counts @ jnp.maximum(weights, 0))) <= tol).all()
+
+
+@pytest.mark.parametrize("contain", [True, False])
+def test_windowed_filter_tracks_with_and_without_containment(seq, contain):
+    """Stated threshold: mean IoU >= 0.6 with the fast windowed path, either window placement."""
+    frames, boxes = seq
+    config = ColourConfig(n_particles=128, contain=contain).with_window((20, 50), (H, W))
+    assert config.window[0] < H or config.window[1] < W
+    out = np.asarray(
+        jax.jit(lambda k, f, b: track_boxes(build_colour_filter(config), PARAMS, k, f, b))(
+            jax.random.key(1), frames, jnp.asarray(boxes[0])
+        )
+    )
+    assert np.mean(np.asarray(iou(jnp.asarray(out), jnp.asarray(boxes)))) >= 0.6

@@ -389,6 +389,34 @@ def test_suggest_window():
     for wh, ww in sizes:
         assert wh % 16 == 0 and ww % 16 == 0 and wh >= 220 and ww >= 165
     assert H.suggest_window((400, 500), 30, frame) == frame  # capped at the frame
+    # explicit extent: box * 1.1 + n_std * spread, rounded up to 16
+    assert H.suggest_window((150, 200), 15, frame, n_std=6) == (320, 256)
+
+
+def test_integral_image_and_rect_sums_match_numpy():
+    rng = np.random.default_rng(3)
+    values = rng.integers(-4096, 4097, (37, 53, 2)).astype(np.int32)
+    rects = np.array(
+        [[0, 0, 53, 37], [5, 7, 20, 30], [-10, -4, 12, 9], [40, 30, 90, 80], [8, 8, 8, 20],
+         [60, 0, 70, 10], [20, 10, 5, 30]],
+        np.int32,
+    )
+
+    def ref(r):
+        x0, y0 = max(r[0], 0), max(r[1], 0)
+        x1, y1 = min(max(r[2], x0), 53), min(max(r[3], y0), 37)
+        return values[y0:y1, x0:x1].reshape(-1, 2).sum(0)
+
+    expected = np.stack([ref(r) for r in rects])
+    f = jax.jit(lambda v, r: H.rect_sums(H.integral_image(v), r))
+    np.testing.assert_array_equal(np.asarray(f(values, rects)), expected)
+    # vmap over frames and rect sets
+    both = jax.vmap(f)(np.stack([values, -values]), np.stack([rects, rects[::-1]]))
+    np.testing.assert_array_equal(np.asarray(both[0]), expected)
+    np.testing.assert_array_equal(np.asarray(both[1]), -expected[::-1])
+    # float tables too
+    table = H.integral_image(values.astype(np.float32))
+    np.testing.assert_allclose(np.asarray(H.rect_sums(table, rects)), expected, rtol=1e-6)
 
 
 # ----------------------------------------------------------------------------- distances
