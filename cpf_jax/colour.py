@@ -14,10 +14,13 @@ One frame (``step``):
 
 1. propagate every particle with the motion model (``cpf_jax.dynamics``), its
    noise scaled by the particle's height / ``config.tau_height``;
-2. keep sizes in ``[min_size, frame size]`` and centres inside the frame;
+2. keep sizes in ``[min_size, frame size]`` and centres inside the frame
+   (and, with a window and ``contain``, the boxes inside the histogram window
+   placed on the cloud's mean);
 3. from one windowed integral histogram of the frame (``kernels.histogram``),
-   the exact histograms of every particle's ``parts`` horizontal stripes and of
-   a ring around its box;
+   the exact histograms of every particle's ``parts`` horizontal stripes; the
+   contrast sums of its box and of a ring around it from a two-channel integer
+   summed-area table of the whole frame (they are linear in the counts);
 4. the log-likelihood (below);
 5. estimate (weighted mean, MAP or robust mean), ESS, lost flag;
 6. optional slow template update from the estimate's histogram;
