@@ -117,7 +117,7 @@ from cpf_jax.kernels.cells import (
     histogram_quantile,
     side_cells,
 )
-from cpf_jax.kernels.histogram import box_histograms, rect_reduce, suggest_window
+from cpf_jax.kernels.histogram import bhattacharyya, box_histograms, rect_reduce, suggest_window
 from cpf_jax.types import Filter, Frame
 
 __all__ = [
@@ -311,12 +311,16 @@ class RGBDParams(NamedTuple):
     template_rate: Array  # 1 - lambda of eq. 7 for colour templates
     template_gate: Array  # colour templates learn only from cells closer than this
     depth_rate: Array  # 1 - lambda of eq. 7 for depth templates
+    depth_speed: Array  # mm per frame a template's target may move while not updated
     spread_rate: Array  # extra position noise per occluded frame (x tau)
     spread_max: Array  # cap of the position-noise multiplier
     recovery_gate: Array  # re-draw around foreground pixels within this many mm ...
     recovery_gate_rel: Array  # ... or this fraction of the target's depth
     report_margin: Array  # report="pixels": search the estimate grown by this per side
     report_min_pixels: Array  # ... ignoring columns / rows with fewer target pixels
+    min_coverage: Array  # grid-occlusion: fewer target pixels (share of the box): hidden
+    max_drift: Array  # mm, cap of depth_speed * age
+    search_drift_max: Array  # mm, cap of the widening of the target gate while hidden
     aspect_mean: Array  # log-normal prior on width / height (config.aspect_prior)
     aspect_sigma: Array
     tau: Array  # [8] motion noise (dynamics)
@@ -354,12 +358,16 @@ PARAM_CONSTRAINTS = RGBDParams(
     template_rate="sigmoid",
     template_gate="sigmoid",
     depth_rate="sigmoid",
+    depth_speed="softplus",
     spread_rate="softplus",
     spread_max="softplus",
     recovery_gate="softplus",
     recovery_gate_rel="softplus",
     report_margin="softplus",
     report_min_pixels="softplus",
+    min_coverage="sigmoid",
+    max_drift="softplus",
+    search_drift_max="softplus",
     aspect_mean="softplus",
     aspect_sigma="softplus",
     tau="softplus",
@@ -396,8 +404,8 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         border_b=jnp.asarray(DEFAULT_BORDER_BETA[1], jnp.float32),
         border_floor=f(-6.0),
         log_occluded=f(-10.0),
-        occluder_margin=f(250.0),
-        occluder_margin_rel=f(0.08),
+        occluder_margin=f(400.0),
+        occluder_margin_rel=f(0.12),
         occluder_eps=f(1e-4),
         occluder_unknown=f(0.3),
         p_occlude=f(0.1),
@@ -407,12 +415,16 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         template_rate=f(0.02),
         template_gate=f(0.4),
         depth_rate=f(0.5),
+        depth_speed=f(60.0),
         spread_rate=f(0.15),
         spread_max=f(3.0),
         recovery_gate=f(300.0),
         recovery_gate_rel=f(0.1),
-        report_margin=f(0.15),
+        report_margin=f(0.25),
         report_min_pixels=f(2.0),
+        min_coverage=f(0.02),
+        max_drift=f(500.0),
+        search_drift_max=f(900.0),
         aspect_mean=f(0.41),
         aspect_sigma=f(0.3),
         tau=jnp.asarray(RGBD_TAU, jnp.float32),
@@ -432,6 +444,7 @@ class RGBDState(NamedTuple):
     flags: Array  # [N] int32 bit masks (bit i = cell i occluded)
     colour_template: Array  # [C, B] normalised histograms of the cells' foreground
     depth_template: Array  # [C] mm, 0 = unknown
+    depth_age: Array  # [C] frames since each depth template was last updated
     vote: Array  # [C] occlusion votes of the last frame
     occluded_frames: Array  # int32, consecutive frames with the target voted occluded
     visible_size: Array  # [2] (w, h) of the last estimate with no cell voted occluded
@@ -602,23 +615,33 @@ def cell_terms(
     depth_template: Array,
     obs: _Observation,
     boxes_xywh: Array,
+    depth_age: Array | None = None,
 ) -> CellTerms:
-    """The per-cell likelihood terms of ``boxes_xywh [N, 4]`` (module docstring)."""
+    """The per-cell likelihood terms of ``boxes_xywh [N, 4]`` (module docstring).
+
+    ``depth_age [C]``: frames since each depth template was last updated; the
+    target may have moved ``depth_speed`` mm per frame since, which widens the
+    depth Gaussian and the occluder margin (None: fresh templates).
+    """
     height, width = obs.foreground.shape
     nz, zlo, zhi = config.depth_bins, *config.depth_range
     c = config.n_cells
     rects = grid_cells(boxes_xywh, config.k)  # [N, C, 4]
     sqrt_q = jnp.sqrt(colour_template)  # [C, B]
     mu = depth_template  # [C]
-    near_thr = mu - jnp.maximum(params.occluder_margin, params.occluder_margin_rel * mu)
+    drift = (
+        0.0 if depth_age is None else jnp.minimum(params.depth_speed * depth_age, params.max_drift)
+    )
+    margin = jnp.maximum(params.occluder_margin, params.occluder_margin_rel * mu) + drift
+    near_thr = mu - margin
     if config.border > 0:
         # The strips ride along in the same table passes; their colour distance is unused.
         rects = jnp.concatenate([rects, border_strips(boxes_xywh, config.border)], axis=-2)
         sqrt_q = jnp.concatenate([sqrt_q, jnp.zeros((8, sqrt_q.shape[-1]), sqrt_q.dtype)])
         have = mu > 0
         mu_box = jnp.sum(jnp.where(have, mu, 0.0)) / jnp.maximum(jnp.sum(have), 1)
-        thr_box = mu_box - jnp.maximum(params.occluder_margin, params.occluder_margin_rel * mu_box)
-        near_thr = jnp.concatenate([near_thr, jnp.full((8,), thr_box)])
+        margin_box = jnp.sum(jnp.where(have, margin, 0.0)) / jnp.maximum(jnp.sum(have), 1)
+        near_thr = jnp.concatenate([near_thr, jnp.full((8,), mu_box - margin_box)])
     rects = box_ops.xywh_to_rect(rects)
     area_all = _clipped_area(rects, width, height)
 
@@ -662,7 +685,7 @@ def cell_terms(
     l_beta = params.beta_weight * beta_log_density(ratio, params.beta_a, params.beta_b)
     l_col = jnp.maximum(-d2 / (2.0 * params.sigma_rgb**2), params.colour_floor)
     has_depth = (n_depth >= config.min_depth_count) & (mu > 0)
-    sd = params.sigma_depth + params.sigma_depth_rel * mu
+    sd = jnp.sqrt((params.sigma_depth + params.sigma_depth_rel * mu) ** 2 + drift**2)
     l_dep = jnp.where(
         has_depth, jnp.maximum(-0.5 * ((med - mu) / sd) ** 2, params.depth_floor), 0.0
     )
@@ -770,12 +793,20 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             flags=jnp.zeros((n,), jnp.int32),
             colour_template=hist,
             depth_template=med,
+            depth_age=jnp.zeros((c,), jnp.float32),
             vote=jnp.zeros((c,), jnp.float32),
             occluded_frames=jnp.zeros((), jnp.int32),
             visible_size=box[2:4],
             estimate=box,
             background=bg,
         )
+
+    def target_gate(params: RGBDParams, state: RGBDState, target_z: Array) -> Array:
+        """Depth tolerance (mm) of "a pixel of the target": wider the longer it was hidden,
+        as it may have walked ``depth_speed`` mm per frame (up to ``search_drift_max``)."""
+        hidden_for = state.occluded_frames.astype(jnp.float32)
+        drift = jnp.minimum(params.depth_speed * hidden_for, params.search_drift_max)
+        return jnp.maximum(params.recovery_gate, params.recovery_gate_rel * target_z) + drift
 
     def recovery_draw(
         key: Array, params: RGBDParams, state: RGBDState, obs: _Observation, depth: Array
@@ -797,7 +828,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         have = mu > 0
         target_z = jnp.sum(jnp.where(have, mu, 0.0)) / jnp.maximum(jnp.sum(have), 1)
         z = depth.astype(jnp.float32)
-        gate = jnp.maximum(params.recovery_gate, params.recovery_gate_rel * target_z)
+        gate = target_gate(params, state, target_z)
         ok = obs.foreground & (z > 0) & (jnp.abs(z - target_z) < gate)
         coarse = ok[: hh * s, : ww * s].reshape(hh, s, ww, s).sum((1, 3)).reshape(-1)
         cdf = jnp.cumsum(coarse.astype(jnp.float32))
@@ -831,21 +862,22 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
     def target_extent(
         params: RGBDParams, state: RGBDState, obs: _Observation, depth: Array, est: Array
     ) -> Array:
-        """Tight box ``[4]`` of the target's pixels in and around the estimate (report="pixels").
+        """Tight box ``[4]`` of the target's pixels around the estimate, and their coverage.
 
         Target pixels: foreground within ``max(recovery_gate, recovery_gate_rel * z)``
         of the depth template ``z`` (nearer pixels belong to an occluder);
         searched in the estimate grown by
         ``report_margin`` per side. Columns / rows with fewer than
         ``report_min_pixels`` of them are ignored (isolated noise). The estimate
-        itself when no target pixel is found.
+        itself when no target pixel is found. ``coverage``: target pixels found /
+        the estimate's area (about 0 when the target is hidden).
         """
         height, width = depth.shape
         mu = state.depth_template
         have = mu > 0
         target_z = jnp.sum(jnp.where(have, mu, 0.0)) / jnp.maximum(jnp.sum(have), 1)
         z = depth.astype(jnp.float32)
-        gate = jnp.maximum(params.recovery_gate, params.recovery_gate_rel * target_z)
+        gate = target_gate(params, state, target_z)
         # Pixels without depth are left out: at depth edges and on dark hair they
         # cannot be told apart from an occluder's.
         like = obs.foreground & (z > 0) & (jnp.abs(z - target_z) < gate)
@@ -864,12 +896,13 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         col_n = _kept_lines(jnp.sum(t, axis=0), params.report_min_pixels)
         row_n = _kept_lines(jnp.sum(t, axis=1), params.report_min_pixels)
         ok = jnp.any(col_n) & jnp.any(row_n)
+        coverage = jnp.sum(t) / jnp.maximum(est[2] * est[3], 1.0)
         big = jnp.float32(1e9)
         bx0 = jnp.min(jnp.where(col_n, cols - 0.5, big))
         bx1 = jnp.max(jnp.where(col_n, cols + 0.5, -big))
         by0 = jnp.min(jnp.where(row_n, rows - 0.5, big))
         by1 = jnp.max(jnp.where(row_n, rows + 0.5, -big))
-        return jnp.where(ok, jnp.stack([bx0, by0, bx1 - bx0, by1 - by0]), est)
+        return jnp.where(ok, jnp.stack([bx0, by0, bx1 - bx0, by1 - by0]), est), coverage
 
     def step(
         params: RGBDParams, key: Array, state: RGBDState, frame: Frame
@@ -912,7 +945,13 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
 
         boxes_xywh = _to_xywh(particles)
         terms = cell_terms(
-            config, params, state.colour_template, state.depth_template, obs, boxes_xywh
+            config,
+            params,
+            state.colour_template,
+            state.depth_template,
+            obs,
+            boxes_xywh,
+            state.depth_age,
         )
         l_vis, l_occ, fg_count, area = terms.l_vis, terms.l_occ, terms.fg_count, terms.area
         box_term = config.box_term and c > 1
@@ -964,9 +1003,13 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         vote = w @ p_cell  # [C]
         voted = vote > params.vote_threshold
         target_occluded = jnp.mean(voted.astype(jnp.float32)) > 0.5
+        extent, coverage = target_extent(params, state, obs, frame.depth, est)
+        # Nothing at the target's depth in or around the estimate: the target is hidden
+        # (or lost), whatever the cells' votes say.
+        hidden = coverage < params.min_coverage
 
         if config.report == "pixels":
-            report = target_extent(params, state, obs, frame.depth, est)
+            report = extent
         elif config.occlusion and config.report == "cells":
             cells = grid_cells(est, k)  # [C, 4]
             x0 = jnp.min(jnp.where(voted, jnp.inf, cells[:, 0]))
@@ -976,9 +1019,12 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             report = jnp.where(jnp.all(voted), est, jnp.stack([x0, y0, x1 - x0, y1 - y0]))
         else:
             report = est
-        lost = invalid | (jnp.all(voted) if config.occlusion else False)
+        lost = invalid | ((jnp.all(voted) | hidden) if config.occlusion else False)
+        if config.occlusion:
+            target_occluded = target_occluded | hidden
 
         colour_template, depth_template = state.colour_template, state.depth_template
+        depth_age = state.depth_age
         if config.template_update:
             hist, med, total = _cell_templates(config, obs, est)
             ok = (~voted) & (~lost)
@@ -986,9 +1032,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             # template (d < template_gate): a misplaced estimate would teach the template
             # its own error. A drastic appearance change is then carried by the depth
             # and foreground terms rather than learned.
-            est_d = cell_terms(
-                config, params, colour_template, depth_template, obs, est[None]
-            ).distance[0]
+            est_d = bhattacharyya(hist, colour_template)
             rate = jnp.where(ok & (est_d < params.template_gate), params.template_rate, 0.0)
             rate = rate[:, None]
             if config.background_bin:
@@ -1001,19 +1045,28 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             colour_template = _normalise((1.0 - rate) * colour_template + rate * hist)
             # Depth templates learn gradual changes only: a jump larger than the
             # occluder margin is an occluder, not the target (P: "depth decides").
-            jump = jnp.abs(med - depth_template) < jnp.maximum(
-                params.occluder_margin, params.occluder_margin_rel * depth_template
+            jump = jnp.abs(med - depth_template) < (
+                jnp.maximum(params.occluder_margin, params.occluder_margin_rel * depth_template)
+                + jnp.minimum(params.depth_speed * state.depth_age, params.max_drift)
             )
             d_ok = ok & (total >= config.min_depth_count) & ((depth_template <= 0) | jump)
-            depth_template = jnp.where(
-                d_ok,
-                jnp.where(
-                    depth_template > 0,
-                    (1.0 - params.depth_rate) * depth_template + params.depth_rate * med,
-                    med,
-                ),
-                depth_template,
+            updated = jnp.where(
+                depth_template > 0,
+                (1.0 - params.depth_rate) * depth_template + params.depth_rate * med,
+                med,
             )
+            # The body moves in depth as a whole: cells that are not updated (occluded,
+            # no depth) follow the mean change of the updated ones, so that they are not
+            # stale when they reappear (a person may change lanes while half hidden).
+            moved = d_ok & (depth_template > 0)
+            shift = jnp.sum(jnp.where(moved, updated - depth_template, 0.0)) / jnp.maximum(
+                jnp.sum(moved), 1
+            )
+            follow = (~d_ok) & (depth_template > 0) & jnp.any(moved)
+            depth_template = jnp.where(
+                d_ok, updated, jnp.where(follow, depth_template + shift, depth_template)
+            )
+            depth_age = jnp.where(d_ok | follow, 0.0, jnp.minimum(state.depth_age + 1.0, 100.0))
         background = state.background
         if config.background_update:
             background = update_background(
@@ -1031,6 +1084,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             flags=flags,
             colour_template=colour_template,
             depth_template=depth_template,
+            depth_age=depth_age,
             vote=vote,
             occluded_frames=occluded_frames.astype(jnp.int32),
             visible_size=jnp.where((jnp.max(vote) < 0.1) & ~lost, est[2:4], state.visible_size),
