@@ -82,6 +82,18 @@ voted visible (``report="cells"``, the ground truth is the tight box of the
 *visible* person), or the whole estimate (``report="box"``); when every cell is
 voted occluded the filter reports no box (``info.lost``), which is what
 CLEAR-MOT's false-positive count asks of a tracker whose target is hidden.
+With ``report="pixels"`` (default) the reported box is the tight box of the
+target's pixels (foreground within the target gate of the depth template) in and
+around the estimate; ``"grid-occlusion"`` also reports no box when those pixels
+cover less than ``min_coverage`` of the estimate (the target is hidden, whatever
+the votes say).
+
+Depth templates age: ``depth_age`` counts the frames since a cell's template was
+last updated; the target may have moved ``depth_speed`` mm per frame since, so the
+depth Gaussian and the occluder margin widen by ``min(depth_speed * age,
+max_drift)``, and the target gate of the recovery draw and of the pixel report
+widens by ``depth_speed`` per hidden frame (up to ``search_drift_max``). Cells
+that are not updated follow the mean depth change of the updated ones.
 """
 
 from __future__ import annotations
