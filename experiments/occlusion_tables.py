@@ -269,7 +269,7 @@ def fit_betas(n_frames: int = 100) -> dict:
     for k in (1, 2):
         r = np.asarray(cell_foreground_ratios(fg, bx, k)).T  # [C, M]
         a, b = fit_beta(r, method="mle")
-        out[k] = (np.round(np.asarray(a), 2).tolist(), np.round(np.asarray(b), 2).tolist())
+        out[k] = ([round(float(v), 2) for v in a], [round(float(v), 2) for v in b])
     return out
 
 
