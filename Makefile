@@ -19,7 +19,8 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
-	$(BIN)/ruff check cpf_jax kernels tests experiments
+	$(BIN)/ruff check cpf_jax kernels tests experiments notebooks
+	$(BIN)/ruff format --check cpf_jax kernels tests experiments notebooks
 
 bench: $(STAMP)
 	$(BIN)/python experiments/bench_colour.py

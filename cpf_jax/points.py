@@ -152,11 +152,13 @@ class PointFilterConfig:
         if self.weighting not in WEIGHTINGS:
             raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
         if not self.references or any(r not in REFERENCES for r in self.references):
-            raise ValueError(f"references must be a non-empty tuple of {REFERENCES}, "
-                             f"got {self.references!r}")
+            raise ValueError(
+                f"references must be a non-empty tuple of {REFERENCES}, got {self.references!r}"
+            )
         if self.resampler not in rs.SCHEMES:
-            raise ValueError(f"resampler must be one of {tuple(rs.SCHEMES)}, "
-                             f"got {self.resampler!r}")
+            raise ValueError(
+                f"resampler must be one of {tuple(rs.SCHEMES)}, got {self.resampler!r}"
+            )
         if self.min_component_fraction is not None and not 0 < self.min_component_fraction <= 1:
             raise ValueError("min_component_fraction must be in (0, 1] or None")
         if min(self.window) < 8:
@@ -271,8 +273,9 @@ def _param(x: Array, p: int) -> Array:
     return jnp.broadcast_to(jnp.asarray(x, jnp.float32), (p,))[:, None]
 
 
-def body_model(config: PointFilterConfig, depth: Array, box: Array,
-               foreground: Array | None = None) -> BodyModel:
+def body_model(
+    config: PointFilterConfig, depth: Array, box: Array, foreground: Array | None = None
+) -> BodyModel:
     """Pre-processing of one frame (step 1 of the module docstring), plus the geodesic map."""
     shape = config.window
     d, win, rows, cols, roi = dk.crop_window(depth, box, shape, config.box_margin)
@@ -335,27 +338,37 @@ def body_model(config: PointFilterConfig, depth: Array, box: Array,
     w = gk.surface_graph(pts, body, config.surface_max_dist_mm * tscale)
     normals, nvalid = dk.vertex_normals(pts, w, config.normal_smoothing)
     mres = gk.mesh_resolution(w)
-    rr, cc = jnp.meshgrid(jnp.arange(shape[0], dtype=jnp.float32),
-                          jnp.arange(shape[1], dtype=jnp.float32), indexing="ij")
+    rr, cc = jnp.meshgrid(
+        jnp.arange(shape[0], dtype=jnp.float32),
+        jnp.arange(shape[1], dtype=jnp.float32),
+        indexing="ij",
+    )
     centres = []
     for ref in config.references:
         if ref == "head":
             centres.append(dk.head_neck_split(body).head_centre)
         else:
             n = jnp.maximum(jnp.sum(body), 1)
-            centres.append(jnp.stack([jnp.sum(jnp.where(body, rr, 0.0)),
-                                      jnp.sum(jnp.where(body, cc, 0.0))]) / n)
+            centres.append(
+                jnp.stack([jnp.sum(jnp.where(body, rr, 0.0)), jnp.sum(jnp.where(body, cc, 0.0))])
+                / n
+            )
     ref_pix, _ = dk.nearest_true(body, jnp.stack(centres))  # [R, 2]
     if config.uses_geodesic:
-        src = ((jnp.arange(shape[0])[None, :, None] == ref_pix[:, 0, None, None])
-               & (jnp.arange(shape[1])[None, None, :] == ref_pix[:, 1, None, None]) & body)
-        geo, sweeps = jax.vmap(lambda s_: gk.geodesic_distances(w, s_, config.max_sweeps,
-                                                                 return_sweeps=True))(src)
+        src = (
+            (jnp.arange(shape[0])[None, :, None] == ref_pix[:, 0, None, None])
+            & (jnp.arange(shape[1])[None, None, :] == ref_pix[:, 1, None, None])
+            & body
+        )
+        geo, sweeps = jax.vmap(
+            lambda s_: gk.geodesic_distances(w, s_, config.max_sweeps, return_sweeps=True)
+        )(src)
         sweeps = jnp.max(sweeps)
     else:
         geo, sweeps = jnp.zeros((len(config.references),) + shape, jnp.float32), jnp.int32(0)
-    return BodyModel(win, rows, cols, d, body, pts, normals, body & nvalid, w, mres, ref_pix, geo,
-                     sweeps)
+    return BodyModel(
+        win, rows, cols, d, body, pts, normals, body & nvalid, w, mres, ref_pix, geo, sweeps
+    )
 
 
 def _component_sizes(labels: Array, valid: Array) -> Array:
@@ -420,9 +433,17 @@ def build_point_filter(config: PointFilterConfig) -> Filter:
 
     def spin_of(bm: BodyModel, rc: Array):
         bin_size = config.spin_bin_factor * bm.mesh_resolution
-        return sk.spin_images(bm.points, bm.normals, bm.spin_valid, rc, jnp.maximum(bin_size, 1e-3),
-                              width=config.spin_width, support_angle_deg=config.support_angle_deg,
-                              patch_radius=config.patch_radius, batch_size=config.spin_batch)
+        return sk.spin_images(
+            bm.points,
+            bm.normals,
+            bm.spin_valid,
+            rc,
+            jnp.maximum(bin_size, 1e-3),
+            width=config.spin_width,
+            support_angle_deg=config.support_angle_deg,
+            patch_radius=config.patch_radius,
+            batch_size=config.spin_batch,
+        )
 
     def init(params: PointParams, key: Array, inputs: PointInputs, points: Array) -> PointState:
         points = jnp.asarray(points, jnp.float32)
@@ -442,8 +463,9 @@ def build_point_filter(config: PointFilterConfig) -> Filter:
         xy = start[:, None, :] + noise
         particles = jnp.concatenate([xy, jnp.zeros((p, n, 2), jnp.float32)], -1)
         lw = jnp.full((p, n), -jnp.log(jnp.float32(n)))
-        return PointState(particles, lw, ref_spin, ref_geo, jnp.asarray(inputs.box, jnp.float32),
-                          start, z0)
+        return PointState(
+            particles, lw, ref_spin, ref_geo, jnp.asarray(inputs.box, jnp.float32), start, z0
+        )
 
     def step(params: PointParams, key: Array, state: PointState, inputs: PointInputs):
         p = state.particles.shape[0]
@@ -495,8 +517,10 @@ def build_point_filter(config: PointFilterConfig) -> Filter:
         ji = dk.frame_to_window(bm.window, prev_est)
         near, found = dk.nearest_true(bm.spin_valid, jnp.stack([ji[:, 1], ji[:, 0]], -1))
         anchor = _pixel_centre(bm, near)
-        redraw = anchor[:, None, :] + jax.random.normal(k_rec, xy.shape) * _param(
-            params.recovery_spread, p)[..., None]
+        redraw = (
+            anchor[:, None, :]
+            + jax.random.normal(k_rec, xy.shape) * _param(params.recovery_spread, p)[..., None]
+        )
         recovered = lost & found
         xy = jnp.where(recovered[:, None, None], redraw, xy)
         vel = jnp.where(recovered[:, None, None], 0.0, vel)
@@ -524,9 +548,20 @@ def build_point_filter(config: PointFilterConfig) -> Filter:
 
         particles, lw, resampled = jax.vmap(res)(keys, lw, particles, thr)
         new_state = PointState(particles, lw, state.ref_spin, state.ref_geodesic, box, mean, z_new)
-        info = PointInfo(mean, best, mean3d, best3d, ess, jnp.mean(on, axis=1), recovered,
-                         resampled,
-                         jnp.sum(bm.body), bm.mesh_resolution, bm.sweeps, complete)
+        info = PointInfo(
+            mean,
+            best,
+            mean3d,
+            best3d,
+            ess,
+            jnp.mean(on, axis=1),
+            recovered,
+            resampled,
+            jnp.sum(bm.body),
+            bm.mesh_resolution,
+            bm.sweeps,
+            complete,
+        )
         return new_state, info
 
     return Filter(init=init, step=step)

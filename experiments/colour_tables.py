@@ -155,13 +155,15 @@ def markdown(res: dict) -> str:
         sep = "|" + "|".join("---:" for _ in d) + "|"
         lines.extend([f"## {title}", "", head, sep, row, ""])
 
-    table("Table 3.1: success rate (%) vs number of particles (thesis: 37.5 ... 91)",
-          res["table_3_1"])
-    table("Table 3.3: success rate (%) vs walking speed, N = 100 (thesis: 84 / 82.5 / 74.5)",
-          res["table_3_3"])
+    table(
+        "Table 3.1: success rate (%) vs number of particles (thesis: 37.5 ... 91)", res["table_3_1"]
+    )
+    table(
+        "Table 3.3: success rate (%) vs walking speed, N = 100 (thesis: 84 / 82.5 / 74.5)",
+        res["table_3_3"],
+    )
     table("Table 3.4: dynamic models, N = 100 (thesis: 83 / 81 / 77.5 / 59)", res["table_3_4"])
-    table("Table 3.5: plain vs hierarchical sampling, N = 50 (thesis: 60 / 79.5)",
-          res["table_3_5"])
+    table("Table 3.5: plain vs hierarchical sampling, N = 50 (thesis: 60 / 79.5)", res["table_3_5"])
     table("Every walking scenario at N = 100", res["per_scenario_n100"])
     table("Likelihood width sigma, N = 100", res["sigma_sweep"])
     table("Likelihood ablation, N = 100", res["likelihood_ablation"])
@@ -220,10 +222,12 @@ def main(argv=None) -> dict:
 
     n50 = dataclasses.replace(base, n_particles=50)
     res["table_3_5"] = {
-        "plain": mean_over(WALKING, seeds, keys, dataclasses.replace(n50, hierarchical=False),
-                           params)[0],
-        "hierarchical": mean_over(WALKING, seeds, keys, dataclasses.replace(n50, hierarchical=True),
-                                  params)[0],
+        "plain": mean_over(
+            WALKING, seeds, keys, dataclasses.replace(n50, hierarchical=False), params
+        )[0],
+        "hierarchical": mean_over(
+            WALKING, seeds, keys, dataclasses.replace(n50, hierarchical=True), params
+        )[0],
     }
     print(f"table 3.5: {res['table_3_5']}", flush=True)
 
@@ -238,18 +242,28 @@ def main(argv=None) -> dict:
 
     thesis_cfg = dataclasses.replace(n100, parts=1, ring_margin=0.0, hierarchical=False)
     thesis_p = params._replace(
-        contrast_weight=jnp.float32(0.0), sigma=jnp.float32(1.0),
+        contrast_weight=jnp.float32(0.0),
+        sigma=jnp.float32(1.0),
         tau=jnp.asarray(THESIS_TAU, jnp.float32),
     )
     res["likelihood_ablation"] = {
         "thesis (1 histogram, sigma=1, thesis tau)": mean_over(
-            WALKING, seeds, keys, thesis_cfg, thesis_p)[0],
+            WALKING, seeds, keys, thesis_cfg, thesis_p
+        )[0],
         "1 histogram, no contrast, our sigma/tau": mean_over(
-            WALKING, seeds, keys, dataclasses.replace(n100, parts=1, ring_margin=0.0),
-            params._replace(contrast_weight=jnp.float32(0.0)))[0],
+            WALKING,
+            seeds,
+            keys,
+            dataclasses.replace(n100, parts=1, ring_margin=0.0),
+            params._replace(contrast_weight=jnp.float32(0.0)),
+        )[0],
         "2 parts, no contrast": mean_over(
-            WALKING, seeds, keys, dataclasses.replace(n100, ring_margin=0.0),
-            params._replace(contrast_weight=jnp.float32(0.0)))[0],
+            WALKING,
+            seeds,
+            keys,
+            dataclasses.replace(n100, ring_margin=0.0),
+            params._replace(contrast_weight=jnp.float32(0.0)),
+        )[0],
         "ours (default)": res["table_3_1"]["100"],
     }
     print(f"ablation: {res['likelihood_ablation']}", flush=True)
@@ -264,8 +278,9 @@ def main(argv=None) -> dict:
         "filter_seeds": keys,
         "walking_scenarios": list(WALKING),
         "config": {k: str(v) for k, v in dataclasses.asdict(base).items()},
-        "params": {k: np.asarray(v).round(4).tolist() for k, v in params._asdict().items()
-                   if k != "motion"},
+        "params": {
+            k: np.asarray(v).round(4).tolist() for k, v in params._asdict().items() if k != "motion"
+        },
         "seconds": round(time.time() - t0),
         "jax": jax.__version__,
         "note": (

@@ -74,8 +74,11 @@ CASES = {
     "walk_towards": (dict(speed_mps=0.4), False, {}),
     # Inside a foreground mask the body is every sizeable component, and the
     # thresholds are looser (the mask has removed floor and furniture already).
-    "walk_across_medium": ({}, True, dict(seg_max_dz_mm=25.0, surface_max_dist_mm=40.0,
-                                          min_component_fraction=0.05)),
+    "walk_across_medium": (
+        {},
+        True,
+        dict(seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05),
+    ),
 }
 
 
@@ -96,8 +99,11 @@ def run(seq, method: str, keys: int, foreground=None, config_kw: dict | None = N
     names = list(seq.joint_names)
     idx = [names.index(n) for n in TRACKED]
     start = jnp.asarray(seq.joints2d[0, idx] + 0.5)
-    inputs = PointInputs(jnp.asarray(seq.depth), jnp.asarray(seq.boxes),
-                         None if foreground is None else jnp.asarray(foreground))
+    inputs = PointInputs(
+        jnp.asarray(seq.depth),
+        jnp.asarray(seq.boxes),
+        None if foreground is None else jnp.asarray(foreground),
+    )
     go = jax.jit(lambda k: track_points(filt, params, k, inputs, start)[1])
     out = []
     for k in range(keys):
@@ -156,14 +162,27 @@ def figure_errors(curves: dict, path: Path, title: str) -> None:
             cv2.line(img, (m - 4, y), (w - 10, y), (225, 225, 225), 1)
             cv2.putText(img, str(v), (5, y + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
         for name, c in curves.items():
-            pts = [(int(m + i / (t - 1) * (w - m - 10)),
-                    int(h - m - min(c[i, k], ymax) / ymax * (h - m - 10))) for i in range(t)]
+            pts = [
+                (
+                    int(m + i / (t - 1) * (w - m - 10)),
+                    int(h - m - min(c[i, k], ymax) / ymax * (h - m - 10)),
+                )
+                for i in range(t)
+            ]
             cv2.polylines(img, [np.array(pts, np.int32)], False, colours[name], 1, cv2.LINE_AA)
-        cv2.putText(img, f"{title}: {hand}, 3D error (mm, clipped at 300) vs frame", (m, h - 15),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+        cv2.putText(
+            img,
+            f"{title}: {hand}, 3D error (mm, clipped at 300) vs frame",
+            (m, h - 15),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            (0, 0, 0),
+            1,
+        )
         for j, name in enumerate(curves):
-            cv2.putText(img, name, (w - 110, 25 + 16 * j), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                        colours[name], 1)
+            cv2.putText(
+                img, name, (w - 110, 25 + 16 * j), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colours[name], 1
+            )
         panels.append(img)
     cv2.imwrite(str(path), np.concatenate(panels, 0))
 
@@ -173,8 +192,11 @@ def figure_frames(seq, infos: dict, path: Path, frames=(10, 60, 110, 160, 199)) 
     bmf = jax.jit(lambda d, b: body_model(cfg, d, b))
     names = list(seq.joint_names)
     idx = [names.index(n) for n in TRACKED]
-    marks = {"spin": cv2.MARKER_TRIANGLE_UP, "geodesic": cv2.MARKER_SQUARE,
-             "combined": cv2.MARKER_DIAMOND}
+    marks = {
+        "spin": cv2.MARKER_TRIANGLE_UP,
+        "geodesic": cv2.MARKER_SQUARE,
+        "combined": cv2.MARKER_DIAMOND,
+    }
     colours = [(0, 0, 255), (0, 200, 0), (255, 80, 0), (0, 200, 255), (255, 0, 255)]
     tiles = []
     for t in frames:
@@ -198,9 +220,17 @@ def figure_frames(seq, infos: dict, path: Path, frames=(10, 60, 110, 160, 199)) 
         cv2.putText(img, f"frame {t}", (5, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
         tiles.append(img)
     legend = np.full((30, sum(t.shape[1] for t in tiles), 3), 255, np.uint8)
-    cv2.putText(legend, "circles: ground truth (red head, green left hand, blue right hand, "
-                "yellow/magenta feet); triangle spin, square geodesic, diamond combined; "
-                "green tint: segmented body", (5, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+    cv2.putText(
+        legend,
+        "circles: ground truth (red head, green left hand, blue right hand, "
+        "yellow/magenta feet); triangle spin, square geodesic, diamond combined; "
+        "green tint: segmented body",
+        (5, 20),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.4,
+        (0, 0, 0),
+        1,
+    )
     cv2.imwrite(str(path), np.concatenate([np.concatenate(tiles, 1), legend], 0))
 
 
@@ -221,18 +251,25 @@ def main() -> None:
         fg = None
         if use_fg:
             bg = temporal_background(seq.depth)
-            fg = np.asarray(jax.vmap(dk.foreground_mask, in_axes=(0, None))(
-                jnp.asarray(seq.depth), jnp.asarray(bg)))
+            fg = np.asarray(
+                jax.vmap(dk.foreground_mask, in_axes=(0, None))(
+                    jnp.asarray(seq.depth), jnp.asarray(bg)
+                )
+            )
         occl = self_occlusion_frames(seq)[1:]
-        vis = seq.meta["joint_visible"][1:][:, [list(seq.joint_names).index(h)
-                                                  for h in ("left_hand", "right_hand")]]
+        vis = seq.meta["joint_visible"][1:][
+            :, [list(seq.joint_names).index(h) for h in ("left_hand", "right_hand")]
+        ]
         infos = {}
-        md += [f"## {case} ({args.frames} frames, 30 frames/s"
-               + (", foreground from a temporal-median depth background" if use_fg else "")
-               + ")", "",
-               "| method | median hand error mm | p90 mm | drift ratio | median, visible "
-               "hands only | head median mm | hand frames recovered | s / run |",
-               "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        md += [
+            f"## {case} ({args.frames} frames, 30 frames/s"
+            + (", foreground from a temporal-median depth background" if use_fg else "")
+            + ")",
+            "",
+            "| method | median hand error mm | p90 mm | drift ratio | median, visible "
+            "hands only | head median mm | hand frames recovered | s / run |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|",
+        ]
         case_curves = {}
         for method in METHODS:
             runs, idx = run(seq, method, args.keys, fg, config_kw)
@@ -241,26 +278,33 @@ def main() -> None:
             summ = summarise(hands)
             summ["median_error_visible_mm"] = round(float(np.median(hands[:, vis])), 1)
             summ["head_median_error_mm"] = round(float(np.median(errs[..., 0])), 1)
-            summ["recovered_fraction"] = round(float(np.mean(
-                [np.asarray(i.recovered)[:, list(HANDS)].mean() for i, _ in runs])), 4)
+            summ["recovered_fraction"] = round(
+                float(np.mean([np.asarray(i.recovered)[:, list(HANDS)].mean() for i, _ in runs])), 4
+            )
             summ["seconds_per_run"] = round(float(np.median([t for _, t in runs])), 1)
             if occl.any():
                 summ["self_occlusion_frames"] = int(occl.sum())
-                summ["self_occlusion_median_error_mm"] = round(
-                    float(np.median(hands[:, occl])), 1)
+                summ["self_occlusion_median_error_mm"] = round(float(np.median(hands[:, occl])), 1)
             report.setdefault(case, {})[method] = summ
             infos[method] = runs[0][0]
             case_curves[method] = np.median(hands, axis=0)
-            md.append(f"| {method} | {summ['median_error_mm']} | {summ['p90_error_mm']} | "
-                      f"{summ['drift_ratio']} | {summ['median_error_visible_mm']} | "
-                      f"{summ['head_median_error_mm']} | "
-                      f"{100 * summ['recovered_fraction']:.1f} % | {summ['seconds_per_run']} |")
+            md.append(
+                f"| {method} | {summ['median_error_mm']} | {summ['p90_error_mm']} | "
+                f"{summ['drift_ratio']} | {summ['median_error_visible_mm']} | "
+                f"{summ['head_median_error_mm']} | "
+                f"{100 * summ['recovered_fraction']:.1f} % | {summ['seconds_per_run']} |"
+            )
             print(case, method, summ, flush=True)
         if occl.any():
-            md += ["", f"Self-occlusion (a visible hand in front of the trunk, {int(occl.sum())} "
-                   "hand-frames): median error " + ", ".join(
-                       f"{m} {report[case][m]['self_occlusion_median_error_mm']} mm"
-                       for m in METHODS) + "."]
+            md += [
+                "",
+                f"Self-occlusion (a visible hand in front of the trunk, {int(occl.sum())} "
+                "hand-frames): median error "
+                + ", ".join(
+                    f"{m} {report[case][m]['self_occlusion_median_error_mm']} mm" for m in METHODS
+                )
+                + ".",
+            ]
         md.append("")
         curves[case] = case_curves
         figure_errors(case_curves, RESULTS / f"depth_points_{case}.png", case)
@@ -272,24 +316,32 @@ def main() -> None:
         out["walk_across_medium"] = report["walk_across_medium"]
     out["setup"] = {
         "main_case": "walk_towards, speed 0.4 m/s, fps 30, seed 0",
-        "frames": args.frames, "keys": args.keys,
-        "tracked": list(TRACKED), "scored": ["left_hand", "right_hand"],
+        "frames": args.frames,
+        "keys": args.keys,
+        "tracked": list(TRACKED),
+        "scored": ["left_hand", "right_hand"],
         "estimate": "weighted mean; 3D = surface under it + offset along the ray",
         "joint_offset_mm": list(JOINT_OFFSET),
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in
-                   PointFilterConfig().__dict__.items() if k != "intrinsics"},
+        "config": {
+            k: (list(v) if isinstance(v, tuple) else v)
+            for k, v in PointFilterConfig().__dict__.items()
+            if k != "intrinsics"
+        },
         "params": {k: float(v) for k, v in default_point_params()._asdict().items()},
         "boxes": "ground truth (perfect layer 1)",
         "loadavg": [round(v, 2) for v in load],
     }
     (RESULTS / "depth_points.json").write_text(json.dumps(out, indent=2) + "\n")
-    md += ["'hand frames recovered': frames in which every particle of a hand had zero weight "
-           "(off the body, or, for geodesic weighting, on a part of the body that the surface "
-           "graph does not connect to the head) and the cloud was re-drawn (documented "
-           "recovery).", "",
-           "Targets (main case, combined): median hand error <= 40 mm, drift ratio <= 1.5.",
-           "Figures: `depth_points_walk_towards.png`, `depth_points_walk_across_medium.png` "
-           "(median over keys of the hand error per frame), `depth_points_frames.png`."]
+    md += [
+        "'hand frames recovered': frames in which every particle of a hand had zero weight "
+        "(off the body, or, for geodesic weighting, on a part of the body that the surface "
+        "graph does not connect to the head) and the cloud was re-drawn (documented "
+        "recovery).",
+        "",
+        "Targets (main case, combined): median hand error <= 40 mm, drift ratio <= 1.5.",
+        "Figures: `depth_points_walk_towards.png`, `depth_points_walk_across_medium.png` "
+        "(median over keys of the hand error per frame), `depth_points_frames.png`.",
+    ]
     (RESULTS / "depth_points.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 

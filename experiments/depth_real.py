@@ -87,15 +87,17 @@ def colour_box_to_depth(box_c: np.ndarray, depth: np.ndarray) -> np.ndarray:
     x, y, w, h = box_c
     z = 3000.0
     for _ in range(2):
+
         def to_depth(u, v, z=z):
             xn = (u - SHIFT_PX - KC.cx) / KC.fx - T_MM[0] / z
             yn = (v - KC.cy) / KC.fy - T_MM[1] / z
             return KD.fx * xn + KD.cx, KD.fy * yn + KD.cy
+
         x0, y0 = to_depth(x, y)
         x1, y1 = to_depth(x + w, y + h)
         r0, r1 = int(max(y0 + 0.3 * (y1 - y0), 0)), int(min(y0 + 0.7 * (y1 - y0), 479))
         c0, c1 = int(max(x0 + 0.3 * (x1 - x0), 0)), int(min(x0 + 0.7 * (x1 - x0), 639))
-        patch = depth[r0:r1 + 1, c0:c1 + 1]
+        patch = depth[r0 : r1 + 1, c0 : c1 + 1]
         if (patch > 0).any():
             z = float(np.median(patch[patch > 0]))
     return np.array([x0, y0, x1 - x0, y1 - y0], np.float32)
@@ -142,13 +144,18 @@ def main() -> None:
     missing = {}
     for i in FRAMES:
         x, y, w, h = np.round(boxes[i]).astype(int)
-        patch = frames[i][0][max(y, 0):y + h, max(x, 0):x + w]
+        patch = frames[i][0][max(y, 0) : y + h, max(x, 0) : x + w]
         missing[i] = round(float((patch == 0).mean()), 3) if patch.size else 1.0
 
     base = PointFilterConfig(window=WINDOW, intrinsics=KD, up=tuple(float(x) for x in up))
     settings = {
-        "thesis": dataclasses.replace(base, threshold_depth_mm=None, floor_max_tilt_deg=None,
-                                      background_margin_mm=None, normal_smoothing=0),
+        "thesis": dataclasses.replace(
+            base,
+            threshold_depth_mm=None,
+            floor_max_tilt_deg=None,
+            background_margin_mm=None,
+            normal_smoothing=0,
+        ),
         "layer": base,
         "layer+fg": dataclasses.replace(base, seg_max_dz_mm=25.0, surface_max_dist_mm=40.0),
     }
@@ -165,23 +172,27 @@ def main() -> None:
             roi = np.asarray(bm.depth) > 0
             roi_fg &= roi
             body = np.asarray(bm.body)
-            stats[name].append({
-                "frame": i,
-                "body_px": int(body.sum()),
-                "fg_recall": round(float((body & roi_fg).sum() / max(roi_fg.sum(), 1)), 3),
-                "leak": round(float((body & ~roi_fg).sum() / max(body.sum(), 1)), 3),
-                "head_found": bool(int(bm.reference_pixels[0, 0]) >= 0 and body.any()),
-                "missing_in_box": missing[i],
-            })
+            stats[name].append(
+                {
+                    "frame": i,
+                    "body_px": int(body.sum()),
+                    "fg_recall": round(float((body & roi_fg).sum() / max(roi_fg.sum(), 1)), 3),
+                    "leak": round(float((body & ~roi_fg).sum() / max(body.sum(), 1)), 3),
+                    "head_found": bool(int(bm.reference_pixels[0, 0]) >= 0 and body.any()),
+                    "missing_in_box": missing[i],
+                }
+            )
             if i in SHOW:
                 keep[(i, name)] = jax.device_get(bm)
 
     # Point tracking through 52-90 with the layer+fg settings.
     cfg = dataclasses.replace(settings["layer+fg"], weighting="combined")
     seq = list(range(52, 91))
-    inputs = PointInputs(jnp.asarray(np.stack([frames[i][0] for i in seq])),
-                         jnp.asarray(np.stack([boxes[i] for i in seq])),
-                         jnp.asarray(np.stack([fg[i] for i in seq])))
+    inputs = PointInputs(
+        jnp.asarray(np.stack([frames[i][0] for i in seq])),
+        jnp.asarray(np.stack([boxes[i] for i in seq])),
+        jnp.asarray(np.stack([fg[i] for i in seq])),
+    )
     bm0 = jax.device_get(models["layer+fg"](inputs.depth[0], inputs.box[0], inputs.foreground[0]))
     g = np.where(np.asarray(bm0.body), np.asarray(bm0.geodesic[0]), -np.inf)
     g = np.where(np.isfinite(g), g, -np.inf)
@@ -191,12 +202,18 @@ def main() -> None:
         sub = np.full_like(g, -np.inf)
         sub[:, sl] = g[:, sl]
         starts_rc.append(np.array(np.unravel_index(np.argmax(sub), g.shape)))
-    starts = np.stack([np.asarray(dk.window_to_frame(bm0.window, jnp.asarray([c + 0.5, r + 0.5])))
-                       for r, c in starts_rc])
+    starts = np.stack(
+        [
+            np.asarray(dk.window_to_frame(bm0.window, jnp.asarray([c + 0.5, r + 0.5])))
+            for r, c in starts_rc
+        ]
+    )
     filt = build_point_filter(cfg)
-    _, info = jax.jit(lambda k: track_points(filt, default_point_params(), k, inputs,
-                                             jnp.asarray(starts, jnp.float32)))(
-        jax.random.PRNGKey(0))
+    _, info = jax.jit(
+        lambda k: track_points(
+            filt, default_point_params(), k, inputs, jnp.asarray(starts, jnp.float32)
+        )
+    )(jax.random.PRNGKey(0))
     info = jax.device_get(info)
     tracks = {52: starts}
     for k, i in enumerate(seq[1:]):
@@ -212,14 +229,17 @@ def main() -> None:
         bm_t = keep[(i, "layer+fg")]
         o, s = np.asarray(bm_t.window.origin), float(bm_t.window.scale)
         # colour crop at the depth window's place (rough, for orientation only)
-        cc = cv2.resize(c[max(int(y - 10), 0):int(y + h + 10), max(int(x - 30), 0):int(x + w + 30)],
-                        (WINDOW[1], WINDOW[0]))
+        cc = cv2.resize(
+            c[max(int(y - 10), 0) : int(y + h + 10), max(int(x - 30), 0) : int(x + w + 30)],
+            (WINDOW[1], WINDOW[0]),
+        )
         panels = [cc]
         for name in settings:
             bm = keep[(i, name)]
             d = np.asarray(bm.depth)
-            gimg = cv2.cvtColor(np.clip((d - 500) / 6000 * 255, 0, 255).astype(np.uint8),
-                                cv2.COLOR_GRAY2BGR)
+            gimg = cv2.cvtColor(
+                np.clip((d - 500) / 6000 * 255, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR
+            )
             gimg[d == 0] = (60, 0, 60)
             body = np.asarray(bm.body)
             gimg[body] = (0.4 * gimg[body] + np.array([0, 150, 0])).astype(np.uint8)
@@ -240,8 +260,9 @@ def main() -> None:
         for k, col in enumerate(((0, 0, 255), (255, 0, 0), (0, 255, 255))):
             q = (tracks[i][k] - o) / s
             cv2.drawMarker(pts, (int(q[0]), int(q[1])), col, cv2.MARKER_CROSS, 12, 2)
-        cv2.putText(pts, f"points, frame {i}", (3, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    (255, 255, 255), 1)
+        cv2.putText(
+            pts, f"points, frame {i}", (3, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1
+        )
         panels.append(pts)
         tiles.append(np.concatenate(panels, 1))
     cv2.imwrite(str(RESULTS / "depth_real.png"), np.concatenate(tiles, 0))
@@ -250,71 +271,97 @@ def main() -> None:
         return round(float(np.median([r[key] for r in stats[name]])), 3)
 
     summary = {
-        name: {"median_fg_recall": agg(name, "fg_recall"), "median_leak": agg(name, "leak"),
-               "median_body_px": agg(name, "body_px"),
-               "frames_leak_over_0.3": int(sum(r["leak"] > 0.3 for r in stats[name])),
-               "frames_recall_under_0.5": int(sum(r["fg_recall"] < 0.5 for r in stats[name]))}
+        name: {
+            "median_fg_recall": agg(name, "fg_recall"),
+            "median_leak": agg(name, "leak"),
+            "median_body_px": agg(name, "body_px"),
+            "frames_leak_over_0.3": int(sum(r["leak"] > 0.3 for r in stats[name])),
+            "frames_recall_under_0.5": int(sum(r["fg_recall"] < 0.5 for r in stats[name])),
+        }
         for name in settings
     }
     out = {
         "summary": summary,
         "floor_normal_camera": [round(float(v), 4) for v in up],
         "floor_inlier_share": round(inlier_share, 3),
-        "tracking": {"points": ["head", "extremity (left half)", "extremity (right half)"],
-                     "recovered_frames": np.asarray(info.recovered).sum(0).tolist(),
-                     "mean_on_body": np.asarray(info.on_body).mean(0).round(3).tolist()},
+        "tracking": {
+            "points": ["head", "extremity (left half)", "extremity (right half)"],
+            "recovered_frames": np.asarray(info.recovered).sum(0).tolist(),
+            "mean_on_body": np.asarray(info.on_body).mean(0).round(3).tolist(),
+        },
         "per_frame": stats,
         "loadavg": [round(v, 2) for v in load_avg],
     }
     (RESULTS / "depth_real.json").write_text(json.dumps(out, indent=2) + "\n")
-    md = ["# Depth layer on IST PIV images1, frames 51-90", "",
-          "| setting | median foreground recall | median leak | frames leak > 0.3 | "
-          "frames recall < 0.5 |", "|---|---:|---:|---:|---:|"]
+    md = [
+        "# Depth layer on IST PIV images1, frames 51-90",
+        "",
+        "| setting | median foreground recall | median leak | frames leak > 0.3 | "
+        "frames recall < 0.5 |",
+        "|---|---:|---:|---:|---:|",
+    ]
     for name, sm in summary.items():
-        md.append(f"| {name} | {sm['median_fg_recall']} | {sm['median_leak']} | "
-                  f"{sm['frames_leak_over_0.3']} | {sm['frames_recall_under_0.5']} |")
-    md += ["", "Per frame (fg_recall / leak):", "",
-           "| frame | " + " | ".join(settings) + " |", "|---|" + "---|" * len(settings)]
+        md.append(
+            f"| {name} | {sm['median_fg_recall']} | {sm['median_leak']} | "
+            f"{sm['frames_leak_over_0.3']} | {sm['frames_recall_under_0.5']} |"
+        )
+    md += [
+        "",
+        "Per frame (fg_recall / leak):",
+        "",
+        "| frame | " + " | ".join(settings) + " |",
+        "|---|" + "---|" * len(settings),
+    ]
     for k, i in enumerate(FRAMES):
-        md.append(f"| {i} | " + " | ".join(
-            f"{stats[n][k]['fg_recall']:.2f} / {stats[n][k]['leak']:.2f}" for n in settings) + " |")
+        md.append(
+            f"| {i} | "
+            + " | ".join(
+                f"{stats[n][k]['fg_recall']:.2f} / {stats[n][k]['leak']:.2f}" for n in settings
+            )
+            + " |"
+        )
     sm = summary
-    md += ["", "## Where segmentation fails on this real depth, and what was done", "",
-           "`fg_recall` is measured against the background-subtraction foreground inside the "
-           "box, which also contains people in front of the target, so it is a measure of "
-           "fragmentation and of missing parts, not of picking the right person.", "",
-           f"- **Kinect-v1-class depth breaks the thesis graph apart.** 20-24 % of the pixels "
-           f"are missing, edges are bloated, and depth is quantised in steps of 12 mm at 2 m, "
-           f"26 mm at 3 m and 35 mm at 3.5 m (measured on frame 1): one quantisation step "
-           f"already exceeds the thesis's 10 mm, so the graph splits the person wherever the "
-           f"surface is not facing the camera, and the largest piece is kept "
-           f"(median recall {sm['thesis']['median_fg_recall']}). Done: thresholds that scale "
-           f"with the pixel pitch, and inside a foreground mask looser ones (25 / 40 mm at 2 m) "
-           f"(median recall {sm['layer+fg']['median_fg_recall']}).",
-           "- **Floor contact.** The camera looks down at about "
-           f"{np.degrees(np.arccos(abs(up[1]))):.0f} deg (floor normal fitted on the empty "
-           "frames), so the floor under the feet has nearly the depth of the legs and joins "
-           "them (frames 84-88, bottom of the `layer` panel in the figure). Done: floor "
-           "removal by normal orientation with the fitted floor normal as `up` (most of the "
-           "floor goes, a fringe of speckles stays: leak up to 0.13 at frame 84), and the "
-           "background-subtraction foreground, which removes it completely (leak "
-           f"{sm['layer+fg']['median_leak']}).",
-           "- **Dark hair.** His dark curly hair returns no depth (frames 51-57 at close range: "
-           "the head is a ring of holes around the face, see frame 53). One pass of 3x3 "
-           "median filling only closes small gaps, so the head region is incomplete, the "
-           "head/neck split and the geodesic reference move down to face and neck. Not "
-           "solved; larger holes would need inpainting from the colour image or a head model.",
-           "- **People touching / passing in front (58-82).** The man in the striped sweater "
-           "and then the grey-haired man are nearer and larger inside the target's box, so "
-           "the 'largest component in front of the background' rule selects them (frames 60 "
-           "and 68 in the figure); the foreground mask contains both people, so it cannot "
-           "separate them either. Not solved here: the cascade's per-cell occlusion flags "
-           "(C2) or choosing the component that carries the tracked points would be needed. "
-           "The point tracks drift during these frames (recoveries: "
-           f"{out['tracking']['recovered_frames']} frames for head / extremities).",
-           "- Also: the depth is not registered to colour; the box was mapped with the "
-           "calibration plus the +11 px shift of ANNOTATION.md at the box's median depth, "
-           "which is rough (a few pixels) but enough to choose the window."]
+    md += [
+        "",
+        "## Where segmentation fails on this real depth, and what was done",
+        "",
+        "`fg_recall` is measured against the background-subtraction foreground inside the "
+        "box, which also contains people in front of the target, so it is a measure of "
+        "fragmentation and of missing parts, not of picking the right person.",
+        "",
+        f"- **Kinect-v1-class depth breaks the thesis graph apart.** 20-24 % of the pixels "
+        f"are missing, edges are bloated, and depth is quantised in steps of 12 mm at 2 m, "
+        f"26 mm at 3 m and 35 mm at 3.5 m (measured on frame 1): one quantisation step "
+        f"already exceeds the thesis's 10 mm, so the graph splits the person wherever the "
+        f"surface is not facing the camera, and the largest piece is kept "
+        f"(median recall {sm['thesis']['median_fg_recall']}). Done: thresholds that scale "
+        f"with the pixel pitch, and inside a foreground mask looser ones (25 / 40 mm at 2 m) "
+        f"(median recall {sm['layer+fg']['median_fg_recall']}).",
+        "- **Floor contact.** The camera looks down at about "
+        f"{np.degrees(np.arccos(abs(up[1]))):.0f} deg (floor normal fitted on the empty "
+        "frames), so the floor under the feet has nearly the depth of the legs and joins "
+        "them (frames 84-88, bottom of the `layer` panel in the figure). Done: floor "
+        "removal by normal orientation with the fitted floor normal as `up` (most of the "
+        "floor goes, a fringe of speckles stays: leak up to 0.13 at frame 84), and the "
+        "background-subtraction foreground, which removes it completely (leak "
+        f"{sm['layer+fg']['median_leak']}).",
+        "- **Dark hair.** His dark curly hair returns no depth (frames 51-57 at close range: "
+        "the head is a ring of holes around the face, see frame 53). One pass of 3x3 "
+        "median filling only closes small gaps, so the head region is incomplete, the "
+        "head/neck split and the geodesic reference move down to face and neck. Not "
+        "solved; larger holes would need inpainting from the colour image or a head model.",
+        "- **People touching / passing in front (58-82).** The man in the striped sweater "
+        "and then the grey-haired man are nearer and larger inside the target's box, so "
+        "the 'largest component in front of the background' rule selects them (frames 60 "
+        "and 68 in the figure); the foreground mask contains both people, so it cannot "
+        "separate them either. Not solved here: the cascade's per-cell occlusion flags "
+        "(C2) or choosing the component that carries the tracked points would be needed. "
+        "The point tracks drift during these frames (recoveries: "
+        f"{out['tracking']['recovered_frames']} frames for head / extremities).",
+        "- Also: the depth is not registered to colour; the box was mapped with the "
+        "calibration plus the +11 px shift of ANNOTATION.md at the box's median depth, "
+        "which is rough (a few pixels) but enough to choose the window.",
+    ]
     (RESULTS / "depth_real.md").write_text("\n".join(md) + "\n")
     print("\n".join(md[:8]))
     print(json.dumps(out["tracking"]))

@@ -51,7 +51,14 @@ __all__ = [
 
 # The 8 neighbours in angular order around a pixel (d_row, d_col): E, SE, S, SW, W, NW, N, NE.
 RING: tuple[tuple[int, int], ...] = (
-    (0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1),
+    (0, 1),
+    (1, 1),
+    (1, 0),
+    (1, -1),
+    (0, -1),
+    (-1, -1),
+    (-1, 0),
+    (-1, 1),
 )
 
 
@@ -67,8 +74,9 @@ class Window(NamedTuple):
     scale: Array
 
 
-def window_geometry(box: Array, shape: tuple[int, int], margin: float = 0.1,
-                    min_scale: float = 1.0) -> Window:
+def window_geometry(
+    box: Array, shape: tuple[int, int], margin: float = 0.1, min_scale: float = 1.0
+) -> Window:
     """Window of static ``shape = (Hw, Ww)`` centred on ``box: [4] (x, y, w, h)``.
 
     The box is enlarged by ``margin`` of its size on every side; the scale is
@@ -108,8 +116,9 @@ def window_to_frame(win: Window, ji: Array) -> Array:
     return jnp.asarray(ji, jnp.float32) * win.scale + win.origin
 
 
-def crop_window(depth: Array, box: Array, shape: tuple[int, int], margin: float = 0.1,
-                min_scale: float = 1.0):
+def crop_window(
+    depth: Array, box: Array, shape: tuple[int, int], margin: float = 0.1, min_scale: float = 1.0
+):
     """Cut a ``[Hw, Ww]`` window around ``box`` from a ``[H, W]`` depth frame.
 
     Returns ``(win_depth [Hw, Ww] float32 mm, window, rows [Hw], cols [Ww], roi [Hw, Ww] bool)``.
@@ -134,8 +143,27 @@ def crop_window(depth: Array, box: Array, shape: tuple[int, int], margin: float 
     return d, win, rows, cols, roi
 
 
-_SORT8 = ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (1, 2), (5, 6), (0, 4),
-          (3, 7), (1, 5), (2, 6), (1, 4), (3, 6), (2, 4), (3, 5), (3, 4))
+_SORT8 = (
+    (0, 1),
+    (2, 3),
+    (4, 5),
+    (6, 7),
+    (0, 2),
+    (1, 3),
+    (4, 6),
+    (5, 7),
+    (1, 2),
+    (5, 6),
+    (0, 4),
+    (3, 7),
+    (1, 5),
+    (2, 6),
+    (1, 4),
+    (3, 6),
+    (2, 4),
+    (3, 5),
+    (3, 4),
+)
 
 
 def fill_holes(depth: Array, region: Array | None = None) -> Array:
@@ -233,8 +261,9 @@ def vertex_normals(points: Array, weights: Array, smooth: int = 0) -> tuple[Arra
     # the right-angle face between its straight neighbours (k, k+2) instead, so
     # that a graph without diagonal edges (far surfaces) still has faces.
     faces = [(k, (k + 1) % 8, spokes[k] & spokes[(k + 1) % 8]) for k in range(8)]
-    faces += [(k, (k + 2) % 8, spokes[k] & spokes[(k + 2) % 8] & ~spokes[k + 1])
-              for k in (0, 2, 4, 6)]
+    faces += [
+        (k, (k + 2) % 8, spokes[k] & spokes[(k + 2) % 8] & ~spokes[k + 1]) for k in (0, 2, 4, 6)
+    ]
     for ka, kb, ok in faces:
         (a1, a2, a3), (b1, b2, b3) = vecs[ka], vecs[kb]
         c1 = a2 * b3 - a3 * b2
@@ -262,8 +291,16 @@ def vertex_normals(points: Array, weights: Array, smooth: int = 0) -> tuple[Arra
     return n, valid
 
 
-_ACOS = (1.5707963050, -0.2145988016, 0.0889789874, -0.0501743046, 0.0308918810, -0.0170881256,
-         0.0066700901, -0.0012624911)
+_ACOS = (
+    1.5707963050,
+    -0.2145988016,
+    0.0889789874,
+    -0.0501743046,
+    0.0308918810,
+    -0.0170881256,
+    0.0066700901,
+    -0.0012624911,
+)
 
 
 def _acos(x: Array) -> Array:
@@ -285,8 +322,8 @@ def _box_sum(a: Array, k: int) -> Array:
     """Sum of an ``[H, W]`` array over the ``(2k+1)^2`` neighbourhood (zero padding), separable."""
     h, w = a.shape
     p = jnp.pad(a, k)
-    rows = sum(p[i:i + h] for i in range(2 * k + 1))
-    return sum(rows[:, j:j + w] for j in range(2 * k + 1))
+    rows = sum(p[i : i + h] for i in range(2 * k + 1))
+    return sum(rows[:, j : j + w] for j in range(2 * k + 1))
 
 
 def silhouette_widths(mask: Array) -> Array:
@@ -345,8 +382,9 @@ def head_neck_split(mask: Array) -> HeadSplit:
     neck = jnp.where(top >= 0, neck, -1).astype(jnp.int32)
     head = m & (rows[:, None] < neck)
     n = jnp.sum(head)
-    rr, cc = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32),
-                          jnp.arange(m.shape[1], dtype=jnp.float32), indexing="ij")
+    rr, cc = jnp.meshgrid(
+        jnp.arange(h, dtype=jnp.float32), jnp.arange(m.shape[1], dtype=jnp.float32), indexing="ij"
+    )
     centre = jnp.stack([jnp.sum(jnp.where(head, rr, 0.0)), jnp.sum(jnp.where(head, cc, 0.0))])
     centre = jnp.where(n > 0, centre / jnp.maximum(n, 1), jnp.full(2, -1.0))
     return HeadSplit(neck, head, centre, top.astype(jnp.int32), widths)
@@ -378,8 +416,9 @@ def erode(mask: Array) -> Array:
     return out
 
 
-def foreground_mask(depth: Array, background: Array, min_diff_mm: float = 100.0,
-                    rel_diff: float = 0.03) -> Array:
+def foreground_mask(
+    depth: Array, background: Array, min_diff_mm: float = 100.0, rel_diff: float = 0.03
+) -> Array:
     """Background subtraction in depth (P 2.3): nearer than the background by ``max(min, rel * z)``.
 
     depth, background: ``[H, W]`` mm, 0 = missing. Pixels without a background

@@ -92,8 +92,9 @@ def neighbour(a: Array, d_row: int, d_col: int, fill) -> Array:
     h, w = a.shape[:2]
     pad = [(1, 1), (1, 1)] + [(0, 0)] * (a.ndim - 2)
     p = jnp.pad(a, pad, constant_values=fill)
-    return lax.slice_in_dim(lax.slice_in_dim(p, 1 + d_row, 1 + d_row + h, axis=0),
-                            1 + d_col, 1 + d_col + w, axis=1)
+    return lax.slice_in_dim(
+        lax.slice_in_dim(p, 1 + d_row, 1 + d_row + h, axis=0), 1 + d_col, 1 + d_col + w, axis=1
+    )
 
 
 def pixel_graph(depth: Array, valid: Array, max_dz: float | Array) -> Array:

@@ -61,14 +61,18 @@ print(format_summary({"walk_across_medium": summary}))
 # %%
 keys = jax.random.split(jax.random.PRNGKey(1), 4)
 by_seed = jax.vmap(lambda k: track_boxes(filt, params, k, frames, seq.boxes[0]))(keys)
-print("success per seed:", [round(summarise(np.asarray(b), seq.boxes)["success_rate"], 1)
-                            for b in by_seed])
+print(
+    "success per seed:",
+    [round(summarise(np.asarray(b), seq.boxes)["success_rate"], 1) for b in by_seed],
+)
 sigmas = jnp.array([0.05, 0.1, 0.3, 1.0])
 by_sigma = jax.vmap(
     lambda s: track_boxes(filt, params._replace(sigma=s), keys[0], frames, seq.boxes[0])
 )(sigmas)
 for s, b in zip(sigmas, by_sigma, strict=True):
-    print(f"sigma={float(s):.2f}: success {summarise(np.asarray(b), seq.boxes)['success_rate']:.1f} %")
+    print(
+        f"sigma={float(s):.2f}: success {summarise(np.asarray(b), seq.boxes)['success_rate']:.1f} %"
+    )
 
 # %% [markdown]
 # A contact sheet of the track (green) against the ground truth (red).

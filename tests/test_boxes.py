@@ -49,8 +49,14 @@ def test_conversions_roundtrip_and_broadcast():
 
 
 def test_rect_rounding_and_clipping():
-    boxes = jnp.array([[10.0, 20.0, 30.0, 40.0], [10.4, 20.5, 30.2, 39.4], [-5.0, -5.0, 10.0, 10.0],
-                       [500.0, 10.0, 20.0, 20.0]])
+    boxes = jnp.array(
+        [
+            [10.0, 20.0, 30.0, 40.0],
+            [10.4, 20.5, 30.2, 39.4],
+            [-5.0, -5.0, 10.0, 10.0],
+            [500.0, 10.0, 20.0, 20.0],
+        ]
+    )
     rects = B.xywh_to_rect(boxes)
     np.testing.assert_array_equal(np.asarray(rects[:2]), [[10, 20, 40, 60], [10, 21, 41, 60]])
     clipped = np.asarray(B.clip_rect(rects, 320, 240))

@@ -23,8 +23,9 @@ def folder(tmp_path_factory) -> Path:
 
 def test_tracks_folder_writes_csv_rrd_and_summary(folder, tmp_path, capsys):
     out, rrd = tmp_path / "boxes.csv", tmp_path / "run.rrd"
-    code = main([str(folder), "--particles", "64", "--out", str(out), "--rrd", str(rrd),
-                 "--no-progress"])
+    code = main(
+        [str(folder), "--particles", "64", "--out", str(out), "--rrd", str(rrd), "--no-progress"]
+    )
     assert code == 0
     printed = capsys.readouterr().out
     assert "SR@0.5 %" in printed and f"tracked {N_FRAMES} frames" in printed
@@ -47,8 +48,20 @@ def test_tracks_folder_writes_csv_rrd_and_summary(folder, tmp_path, capsys):
 
 def test_init_override_and_max_frames(folder, tmp_path):
     out = tmp_path / "b.csv"
-    code = main([str(folder), "--init", "100,80,60,190", "--max-frames", "3", "--out", str(out),
-                 "--particles", "64", "--no-progress"])
+    code = main(
+        [
+            str(folder),
+            "--init",
+            "100,80,60,190",
+            "--max-frames",
+            "3",
+            "--out",
+            str(out),
+            "--particles",
+            "64",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     res = read_results(out)
     assert len(res["frame"]) == 3
@@ -89,8 +102,10 @@ def test_otb_style_folder_with_invisible_frames(tmp_path, capsys):
     (tmp_path / "img").mkdir()
     lines = []
     for t in range(8):
-        cv2.imwrite(str(tmp_path / "img" / f"{t + 1:04d}.jpg"),
-                    cv2.cvtColor(seq.colour[t], cv2.COLOR_RGB2BGR))
+        cv2.imwrite(
+            str(tmp_path / "img" / f"{t + 1:04d}.jpg"),
+            cv2.cvtColor(seq.colour[t], cv2.COLOR_RGB2BGR),
+        )
         x, y, w, h = seq.boxes[t]
         lines.append("0,0,0,0" if t < 2 else f"{x + 1:.0f},{y + 1:.0f},{w:.0f},{h:.0f}")
     (tmp_path / "groundtruth_rect.txt").write_text("\n".join(lines) + "\n")

@@ -123,5 +123,6 @@ def test_hsv_bin_index_matches_opencv_reference_jit_and_vmap():
     out = jax.jit(jax.vmap(lambda f: hsv_bin_index(f, 8, 8, 8)))(jnp.asarray(img))
     np.testing.assert_array_equal(np.asarray(out), ref)
     # v_bins = 0 is the plain H-S index
-    np.testing.assert_array_equal(np.asarray(hsv_bin_index(img[0], 8, 8, 0)),
-                                  np.asarray(color.hs_bin_index(img[0], 8, 8)))
+    np.testing.assert_array_equal(
+        np.asarray(hsv_bin_index(img[0], 8, 8, 0)), np.asarray(color.hs_bin_index(img[0], 8, 8))
+    )

@@ -65,8 +65,9 @@ def test_reference_histogram_parts_are_normalised():
 
 def test_tracks_a_moving_box_under_scan(seq):
     frames, gt = seq
-    boxes = np.asarray(jax.jit(lambda k: track_boxes(FILTER, PARAMS, k, frames, gt[0]))(
-        jax.random.PRNGKey(0)))
+    boxes = np.asarray(
+        jax.jit(lambda k: track_boxes(FILTER, PARAMS, k, frames, gt[0]))(jax.random.PRNGKey(0))
+    )
     assert boxes.shape == (30, 4) and np.isfinite(boxes).all()
     ious = np.asarray(iou(boxes, gt))
     assert (ious >= 0.5).mean() >= 0.95, ious.round(2)
@@ -76,8 +77,9 @@ def test_step_state_and_info_are_finite_and_shaped(seq):
     frames, gt = seq
     f0 = Frame(frames.colour[0], frames.depth[0])
     state = jax.jit(FILTER.init)(PARAMS, jax.random.PRNGKey(0), f0, gt[0])
-    state, info = jax.jit(FILTER.step)(PARAMS, jax.random.PRNGKey(1),
-                                       state, Frame(frames.colour[1], frames.depth[1]))
+    state, info = jax.jit(FILTER.step)(
+        PARAMS, jax.random.PRNGKey(1), state, Frame(frames.colour[1], frames.depth[1])
+    )
     assert state.particles.shape == (128, 8) and state.log_weights.shape == (128,)
     assert 1.0 <= float(info.ess) <= 128.0
     for leaf in jax.tree_util.tree_leaves((state, info)):
@@ -93,11 +95,13 @@ def test_no_retracing_from_frame_to_frame(seq):
         return FILTER.step(params, key, state, frame)
 
     step = jax.jit(counted)
-    state = FILTER.init(PARAMS, jax.random.PRNGKey(0), Frame(frames.colour[0], frames.depth[0]),
-                        gt[0])
+    state = FILTER.init(
+        PARAMS, jax.random.PRNGKey(0), Frame(frames.colour[0], frames.depth[0]), gt[0]
+    )
     for t in range(1, 6):
-        state, _ = step(PARAMS, jax.random.PRNGKey(t), state,
-                        Frame(frames.colour[t], frames.depth[t]))
+        state, _ = step(
+            PARAMS, jax.random.PRNGKey(t), state, Frame(frames.colour[t], frames.depth[t])
+        )
     assert len(traces) == 1
 
 
@@ -120,8 +124,15 @@ def test_vmap_over_seeds_and_over_sigma(seq):
 def test_every_model_and_estimator_runs(seq, model, estimator):
     frames, gt = seq
     short = jax.tree_util.tree_map(lambda x: x[:6], frames)
-    filt = build_colour_filter(ColourConfig(n_particles=32, model=model, estimator=estimator,
-                                            resampler="residual", ess_threshold=0.5))
+    filt = build_colour_filter(
+        ColourConfig(
+            n_particles=32,
+            model=model,
+            estimator=estimator,
+            resampler="residual",
+            ess_threshold=0.5,
+        )
+    )
     boxes = np.asarray(track_boxes(filt, PARAMS, jax.random.PRNGKey(0), short, gt[0]))
     assert np.isfinite(boxes).all()
     if model.endswith("_fixed"):
@@ -131,8 +142,9 @@ def test_every_model_and_estimator_runs(seq, model, estimator):
 def test_invalid_weights_fall_back_to_uniform_without_nan(seq):
     frames, gt = seq
     bad = PARAMS._replace(sigma=jnp.float32(jnp.nan))
-    _, infos = track(FILTER, bad, jax.random.PRNGKey(0), jax.tree_util.tree_map(
-        lambda x: x[:4], frames), gt[0])
+    _, infos = track(
+        FILTER, bad, jax.random.PRNGKey(0), jax.tree_util.tree_map(lambda x: x[:4], frames), gt[0]
+    )
     assert bool(jnp.all(infos.weights_invalid)) and bool(jnp.all(infos.lost))
     assert np.isfinite(np.asarray(infos.estimate)).all()
 

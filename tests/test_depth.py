@@ -19,9 +19,16 @@ def fill_holes_loop(z: np.ndarray, region: np.ndarray) -> np.ndarray:
         for c in range(w):
             if not region[r, c] or z[r, c] > 0:
                 continue
-            vals = [z[r + dr, c + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)
-                    if (dr or dc) and 0 <= r + dr < h and 0 <= c + dc < w
-                    and region[r + dr, c + dc] and z[r + dr, c + dc] > 0]
+            vals = [
+                z[r + dr, c + dc]
+                for dr in (-1, 0, 1)
+                for dc in (-1, 0, 1)
+                if (dr or dc)
+                and 0 <= r + dr < h
+                and 0 <= c + dc < w
+                and region[r + dr, c + dc]
+                and z[r + dr, c + dc] > 0
+            ]
             out[r, c] = np.median(vals) if vals else 0.0
     return out
 
@@ -111,7 +118,7 @@ def _plane_points(h, w, normal, d0=2500.0, noise=0.0, seed=0):
     n = np.asarray(normal, np.float64)
     n /= np.linalg.norm(n)
     fx, fy, cx, cy = KINECT_V2_DEPTH
-    v, u = np.mgrid[200:200 + h, 250:250 + w].astype(np.float64)
+    v, u = np.mgrid[200 : 200 + h, 250 : 250 + w].astype(np.float64)
     ray = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
     z = -d0 / (ray @ n)  # Z along the ray such that n . (Z ray) = -d0
     z = z + np.random.default_rng(seed).normal(0, noise, z.shape)
@@ -137,8 +144,11 @@ def normals_loop(p: np.ndarray, w: np.ndarray) -> np.ndarray:
         for c in range(wd):
             s = [edge(r, c, dr, dc) for dr, dc in ring]
             faces = [(k, (k + 1) % 8) for k in range(8) if s[k] and s[(k + 1) % 8]]
-            faces += [(k, k + 2 if k < 6 else 0) for k in (0, 2, 4, 6)
-                      if s[k] and s[(k + 2) % 8] and not s[k + 1]]
+            faces += [
+                (k, k + 2 if k < 6 else 0)
+                for k in (0, 2, 4, 6)
+                if s[k] and s[(k + 2) % 8] and not s[k + 1]
+            ]
             acc = np.zeros(3)
             for a, b in faces:
                 va = p[r + ring[a][0], c + ring[a][1]].astype(np.float64) - p[r, c]
@@ -201,7 +211,7 @@ def _silhouette(h=120, w=60, neck=(30, 34), head_w=16, neck_w=6, body_w=40):
             half = neck_w // 2
         else:
             half = body_w // 2
-        m[r, c - half:c + half] = True
+        m[r, c - half : c + half] = True
     return m
 
 
@@ -214,7 +224,7 @@ def test_silhouette_widths_and_head_neck_split():
     assert 30 <= int(split.neck_row) < 34  # inside the neck, not the crown of the head
     assert int(split.top) == 10
     head = np.asarray(split.head)
-    assert head.sum() == m[:int(split.neck_row)].sum()
+    assert head.sum() == m[: int(split.neck_row)].sum()
     cr, cc = np.asarray(split.head_centre)
     assert abs(cr - np.nonzero(head)[0].mean()) < 1e-3 and abs(cc - 29.5) < 1.0
     # batched, and an empty mask
@@ -244,8 +254,11 @@ def test_erode_matches_loop():
     got = np.asarray(dk.erode(m))
     for r in range(15):
         for c in range(17):
-            win = [m[r + a, c + b] if 0 <= r + a < 15 and 0 <= c + b < 17 else False
-                   for a in (-1, 0, 1) for b in (-1, 0, 1)]
+            win = [
+                m[r + a, c + b] if 0 <= r + a < 15 and 0 <= c + b < 17 else False
+                for a in (-1, 0, 1)
+                for b in (-1, 0, 1)
+            ]
             assert got[r, c] == all(win)
 
 

@@ -31,16 +31,33 @@ def test_ar2_matches_eq_3_26_without_noise():
 @pytest.mark.parametrize("model", ["ar1_fixed", "ar2_fixed"])
 def test_fixed_models_keep_size(model):
     tau = jnp.asarray(THESIS_TAU) * 5
-    out = np.asarray(propagate(KEY, jnp.tile(STATE, (100, 1)), jnp.tile(PREV, (100, 1)), tau, MP,
-                               model=model, hierarchical=True))
+    out = np.asarray(
+        propagate(
+            KEY,
+            jnp.tile(STATE, (100, 1)),
+            jnp.tile(PREV, (100, 1)),
+            tau,
+            MP,
+            model=model,
+            hierarchical=True,
+        )
+    )
     np.testing.assert_allclose(out[:, 4:6], np.tile([40.0, 90.0], (100, 1)))
     assert np.all(out[:, 6:] == 0)
     assert out[:, 0].std() > 1.0
 
 
 def test_random_walk_has_no_velocity():
-    out = np.asarray(propagate(KEY, jnp.tile(STATE, (500, 1)), jnp.tile(PREV, (500, 1)),
-                               jnp.asarray(THESIS_TAU), MP, model="random_walk"))
+    out = np.asarray(
+        propagate(
+            KEY,
+            jnp.tile(STATE, (500, 1)),
+            jnp.tile(PREV, (500, 1)),
+            jnp.asarray(THESIS_TAU),
+            MP,
+            model="random_walk",
+        )
+    )
     assert np.all(out[:, [2, 3, 6, 7]] == 0)
     np.testing.assert_allclose(out[:, 0].mean(), 100.0, atol=1.5)  # no drift from x'
     np.testing.assert_allclose(out[:, 0].std(), 10.0, rtol=0.1)
@@ -49,8 +66,16 @@ def test_random_walk_has_no_velocity():
 def test_ar1_noise_scales_are_tau():
     n = 20_000
     independent = MP._replace(size_correlation=jnp.float32(0.0))
-    out = np.asarray(propagate(KEY, jnp.tile(STATE, (n, 1)), jnp.tile(PREV, (n, 1)),
-                               jnp.asarray(THESIS_TAU), independent, model="ar1"))
+    out = np.asarray(
+        propagate(
+            KEY,
+            jnp.tile(STATE, (n, 1)),
+            jnp.tile(PREV, (n, 1)),
+            jnp.asarray(THESIS_TAU),
+            independent,
+            model="ar1",
+        )
+    )
     # position gets n1 (tau=10) only; velocity n3 (tau=1)
     np.testing.assert_allclose(out.std(axis=0), THESIS_TAU, rtol=0.03)
 
@@ -71,16 +96,18 @@ def test_guidance_stretches_along_motion_and_keeps_stationary_isotropic():
     n = 20_000
     mp = default_motion_params()._replace(guided_fraction=jnp.float32(1.0))
     moving = jnp.tile(jnp.array([[100.0, 100.0, 8.0, 0.0, 40.0, 90.0, 0.0, 0.0]]), (n, 1))
-    out = np.asarray(propagate(KEY, moving, moving, jnp.asarray(THESIS_TAU), mp, model="ar1",
-                               hierarchical=True))
+    out = np.asarray(
+        propagate(KEY, moving, moving, jnp.asarray(THESIS_TAU), mp, model="ar1", hierarchical=True)
+    )
     sx, sy = out[:, 0].std(), out[:, 1].std()
     assert sx > 1.5 * 10 and sy < 10 / 1.5
     assert abs(out[:, 0].mean() - 108.0) < 0.5  # still centred on the AR1 prediction
     # size-velocity noise is damped by fast motion along x
     assert out[:, 6].std() < 0.1 * 0.5
     still = moving.at[:, 2].set(0.0)
-    out = np.asarray(propagate(KEY, still, still, jnp.asarray(THESIS_TAU), mp, model="ar1",
-                               hierarchical=True))
+    out = np.asarray(
+        propagate(KEY, still, still, jnp.asarray(THESIS_TAU), mp, model="ar1", hierarchical=True)
+    )
     np.testing.assert_allclose([out[:, 0].std(), out[:, 1].std()], [10, 10], rtol=0.05)
 
 
@@ -95,14 +122,20 @@ def test_guided_fraction_zero_equals_plain():
 @pytest.mark.parametrize("model", MODELS)
 def test_jit_and_vmap(model):
     p = jnp.tile(STATE, (16, 1))
-    f = jax.jit(lambda k, p: propagate(k, p, p, jnp.asarray(THESIS_TAU), MP, model=model,
-                                       hierarchical=True))
+    f = jax.jit(
+        lambda k, p: propagate(k, p, p, jnp.asarray(THESIS_TAU), MP, model=model, hierarchical=True)
+    )
     a = f(KEY, p)
     keys = jax.random.split(KEY, 3)
     b = jax.vmap(f, in_axes=(0, None))(keys, p)
     assert b.shape == (3, 16, 8) and np.isfinite(np.asarray(b)).all()
-    np.testing.assert_allclose(np.asarray(a), np.asarray(propagate(
-        KEY, p, p, jnp.asarray(THESIS_TAU), MP, model=model, hierarchical=True)), rtol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(a),
+        np.asarray(
+            propagate(KEY, p, p, jnp.asarray(THESIS_TAU), MP, model=model, hierarchical=True)
+        ),
+        rtol=1e-5,
+    )
 
 
 def test_unknown_model_is_a_clear_error():

@@ -15,8 +15,15 @@ from cpf_jax.kernels import graph as gk
 FX = FY = 365.0
 
 
-def render_figure(h: int = 96, w: int = 64, z0: float = 2000.0, noise: float = 1.0, seed: int = 0,
-                  arm: float = 0.4, k: float = 0.33):
+def render_figure(
+    h: int = 96,
+    w: int = 64,
+    z0: float = 2000.0,
+    noise: float = 1.0,
+    seed: int = 0,
+    arm: float = 0.4,
+    k: float = 0.33,
+):
     """A capsule figure (head, trunk, arms, legs; ``k`` x adult size) ray cast into a window.
 
     Returns ``(depth [h, w] float32 mm, 0 = background/missing, points [h, w, 3])``.
@@ -28,15 +35,28 @@ def render_figure(h: int = 96, w: int = 64, z0: float = 2000.0, noise: float = 1
     d = np.stack([(u - cx) / FX, (v - cy) / FY, np.ones_like(u)], -1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     j = {
-        "head": (0, -760), "neck": (0, -560), "pelvis": (0, 0),
-        "ls": (-180, -480), "rs": (180, -480),
-        "lh": (-200 - 500 * np.sin(arm), -480 + 500 * np.cos(arm)), "rh": (330, 0),
-        "lf": (-150, 850), "rf": (160, 850),
+        "head": (0, -760),
+        "neck": (0, -560),
+        "pelvis": (0, 0),
+        "ls": (-180, -480),
+        "rs": (180, -480),
+        "lh": (-200 - 500 * np.sin(arm), -480 + 500 * np.cos(arm)),
+        "rh": (330, 0),
+        "lf": (-150, 850),
+        "rf": (160, 850),
     }
-    pts = {n: np.array([k * x, k * y, z0 + (40 * k if n == "lh" else 0)])
-           for n, (x, y) in j.items()}
-    segs = [("head", "head", 100), ("neck", "pelvis", 150), ("ls", "rs", 70), ("ls", "lh", 45),
-            ("rs", "rh", 45), ("pelvis", "lf", 75), ("pelvis", "rf", 75)]
+    pts = {
+        n: np.array([k * x, k * y, z0 + (40 * k if n == "lh" else 0)]) for n, (x, y) in j.items()
+    }
+    segs = [
+        ("head", "head", 100),
+        ("neck", "pelvis", 150),
+        ("ls", "rs", 70),
+        ("ls", "lh", 45),
+        ("rs", "rh", 45),
+        ("pelvis", "lf", 75),
+        ("pelvis", "rf", 75),
+    ]
     t = np.full((h, w), np.inf)
     for a, b, r in segs:
         pa, pb, r = pts[a], pts[b], r * k

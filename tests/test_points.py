@@ -30,9 +30,17 @@ def _joints(t: int):
     x0 = -150.0 + 9.0 * t
     z0 = 2000.0
     arm = 0.35 + 0.25 * np.sin(t / 3.0)
-    j = {"head": (0, -760), "neck": (0, -560), "pelvis": (0, 0), "ls": (-180, -480),
-         "rs": (180, -480), "lh": (-200 - 500 * np.sin(arm), -480 + 500 * np.cos(arm)),
-         "rh": (330, 0), "lf": (-150, 850), "rf": (160, 850)}
+    j = {
+        "head": (0, -760),
+        "neck": (0, -560),
+        "pelvis": (0, 0),
+        "ls": (-180, -480),
+        "rs": (180, -480),
+        "lh": (-200 - 500 * np.sin(arm), -480 + 500 * np.cos(arm)),
+        "rh": (330, 0),
+        "lf": (-150, 850),
+        "rf": (160, 850),
+    }
     return {n: np.array([x0 + K * x, K * y, z0]) for n, (x, y) in j.items()}
 
 
@@ -44,8 +52,15 @@ def render(t: int, seed: int = 0):
     fx, fy, cx, cy = INTR
     d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    segs = [("head", "head", 100), ("neck", "pelvis", 150), ("ls", "rs", 70), ("ls", "lh", 45),
-            ("rs", "rh", 45), ("pelvis", "lf", 75), ("pelvis", "rf", 75)]
+    segs = [
+        ("head", "head", 100),
+        ("neck", "pelvis", 150),
+        ("ls", "rs", 70),
+        ("ls", "lh", 45),
+        ("rs", "rh", 45),
+        ("pelvis", "lf", 75),
+        ("pelvis", "rf", 75),
+    ]
     tt = np.full((H, W), np.inf)
     for a, b, r in segs:
         pa, pb, r = j[a], j[b], r * K
@@ -70,14 +85,24 @@ T = 14
 @pytest.fixture(scope="module")
 def sequence():
     frames = [render(t) for t in range(T)]
-    inputs = PointInputs(jnp.asarray(np.stack([f[0] for f in frames])),
-                         jnp.asarray(np.stack([f[1] for f in frames])))
+    inputs = PointInputs(
+        jnp.asarray(np.stack([f[0] for f in frames])), jnp.asarray(np.stack([f[1] for f in frames]))
+    )
     return frames, inputs
 
 
-BASE = PointFilterConfig(n_particles=48, window=(112, 64), intrinsics=INTR, patch_radius=16,
-                         spin_batch=48, threshold_depth_mm=None, floor_max_tilt_deg=None,
-                         normal_smoothing=1, seg_max_dz_mm=20.0, surface_max_dist_mm=30.0)
+BASE = PointFilterConfig(
+    n_particles=48,
+    window=(112, 64),
+    intrinsics=INTR,
+    patch_radius=16,
+    spin_batch=48,
+    threshold_depth_mm=None,
+    floor_max_tilt_deg=None,
+    normal_smoothing=1,
+    seg_max_dz_mm=20.0,
+    surface_max_dist_mm=30.0,
+)
 
 
 def _start(frames):
@@ -139,8 +164,12 @@ def test_step_weights_only_body_particles_and_compiles_once(sequence):
         return filt.step(*a)
 
     step = jax.jit(counted)
-    state = jax.jit(filt.init)(params, jax.random.PRNGKey(1), jax.tree_util.tree_map(
-        lambda x: x[0], inputs), _start(frames))
+    state = jax.jit(filt.init)(
+        params,
+        jax.random.PRNGKey(1),
+        jax.tree_util.tree_map(lambda x: x[0], inputs),
+        _start(frames),
+    )
     bmf = jax.jit(lambda d, b: body_model(cfg, d, b))
     for t in range(1, 5):
         frame = jax.tree_util.tree_map(lambda x, t=t: x[t], inputs)
@@ -168,8 +197,9 @@ def test_recovery_when_every_particle_is_off_the_body(sequence):
     shifted = np.full_like(z, 3000)
     shifted[:, 40:] = z[:, :-40]
     box = box + np.array([40, 0, 0, 0], np.float32)
-    state, info = jax.jit(filt.step)(params, jax.random.PRNGKey(3), state,
-                                     PointInputs(jnp.asarray(shifted), jnp.asarray(box)))
+    state, info = jax.jit(filt.step)(
+        params, jax.random.PRNGKey(3), state, PointInputs(jnp.asarray(shifted), jnp.asarray(box))
+    )
     rec = np.asarray(info.recovered)
     assert rec[0]
     bm = jax.jit(lambda d, b: body_model(cfg, d, b))(jnp.asarray(shifted), jnp.asarray(box))
@@ -177,7 +207,7 @@ def test_recovery_when_every_particle_is_off_the_body(sequence):
     r, c = int(ji[0, 1]), int(ji[0, 0])
     body = np.asarray(bm.body)
     # the recovered estimate sits on (or next to) the body, nearest to the old estimate
-    assert body[max(r - 2, 0):r + 3, max(c - 2, 0):c + 3].any()
+    assert body[max(r - 2, 0) : r + 3, max(c - 2, 0) : c + 3].any()
 
 
 def test_vmap_over_keys(sequence):
