@@ -56,11 +56,14 @@ tables); ``experiments/colour_tables.py`` reports the sigma sweep and an
 ablation against the thesis's likelihood.
 
 Lost target (documented recovery): when even the best particle's distance
-exceeds ``params.lost_distance`` the frame is flagged ``lost``; on lost frames a
-share ``config.recovery_fraction`` of the particles is re-drawn uniformly over
-the frame (the automatic (re)initialisation of thesis 3.5) so the filter can
-find the person again, and the template is not updated. If every log-weight is
-invalid (NaN/-inf), the weights fall back to uniform (``info.weights_invalid``).
+exceeds ``params.lost_distance``, or the estimate's height has collapsed below
+``config.collapse_ratio`` of the initial box's, the frame is flagged ``lost``;
+on lost frames a share ``config.recovery_fraction`` of the particles is
+re-drawn, half uniformly over the frame and half around the last estimate,
+with sizes around the initial box's (the automatic (re)initialisation of
+thesis 3.5) so the filter can find the person again, and the template is not
+updated. If every log-weight is invalid
+(NaN/-inf), the weights fall back to uniform (``info.weights_invalid``).
 """
 
 from __future__ import annotations
@@ -134,6 +137,10 @@ class ColourConfig:
     ess_threshold: float = 1.0  # resample when ESS < threshold * N (1.0: every frame)
     template_update: bool = False
     recovery_fraction: float = 0.1  # share of particles re-drawn over the frame when lost
+    # The target also counts as lost when the estimate's height falls below this
+    # fraction of the initial box's (a cloud collapsed onto a small patch of
+    # similar colour; 0: off).
+    collapse_ratio: float = 0.25
     min_size: float = 8.0  # px, smallest box side a particle may take
     init_spread: float = 0.0  # px, std of the initial cloud around the initial box
     # Static (h, w) window of the fast exact histogram path (None: whole-frame
@@ -141,7 +148,7 @@ class ColourConfig:
     window: tuple[int, int] | None = None
     # With a window: place it on the cloud's (weighted) mean centre every frame
     # and keep the particle centres inside it (the motion noise is truncated at
-    # the window's edge, which ``with_window`` puts about 4 standard deviations
+    # the window's edge, which ``with_window`` puts about 3 standard deviations
     # of the position noise out). Every step then takes the fast exact path;
     # a lost target's frame-wide search and boxes larger than the window fall
     # back to the exact whole-frame path. False: the window follows the cloud's
@@ -177,6 +184,8 @@ class ColourConfig:
             raise ValueError(f"parts must be >= 1, got {self.parts}")
         if len(self.bins) not in (2, 3) or min(self.bins[:2]) < 1 or min(self.bins) < 0:
             raise ValueError(f"bins must be positive, got {self.bins}")
+        if not 0.0 <= self.collapse_ratio < 1.0:
+            raise ValueError(f"collapse_ratio must be in [0, 1), got {self.collapse_ratio}")
 
     @property
     def n_bins(self) -> int:
@@ -275,6 +284,7 @@ class ColourState(NamedTuple):
     contrast: Array  # [B] per-bin contrast weight P(object | bin) - 1/2
     estimate: Array  # [4] xywh
     lost: Array  # bool
+    size0: Array  # [2] (w, h) of the initial box: the size of re-drawn particles
 
 
 class ColourInfo(NamedTuple):
@@ -440,6 +450,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             contrast=contrast,
             estimate=box,
             lost=jnp.array(False),
+            size0=box[2:4],
         )
 
     def step(
@@ -458,11 +469,28 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             scale=None if config.tau_height is None else state.particles[:, 5] / config.tau_height,
         )
         if config.recovery_fraction > 0:
-            # On a lost target, re-draw some particles uniformly over the frame.
-            k1, k2 = jax.random.split(k_rec)
+            # On a lost target, re-draw some particles: half uniformly over the
+            # frame, half around the last estimate (a collapsed cloud still sits on
+            # the person), all with sizes around the initial box's (+-20 %).
+            k1, k2, k3, k4 = jax.random.split(k_rec, 4)
             redraw = jax.random.uniform(k1, (n,)) < config.recovery_fraction
-            centres = jax.random.uniform(k2, (n, 2)) * jnp.array([width, height], jnp.float32)
-            fresh = particles.at[:, :2].set(centres).at[:, 2:4].set(0.0)
+            anywhere = jax.random.uniform(k2, (n, 2)) * jnp.array([width, height], jnp.float32)
+            z = jax.random.normal(k3, (n, 3))
+            centre = state.estimate[:2] + state.estimate[2:4] / 2
+            nearby = centre + 0.25 * state.size0 * z[:, :2]
+            near = jax.random.uniform(k4, (n,)) < 0.5
+            centres = jnp.where(near[:, None], nearby, anywhere)
+            sizes = state.size0 * jnp.exp(0.2 * z[:, 2:3])
+            fresh = (
+                particles.at[:, :2]
+                .set(centres)
+                .at[:, 2:4]
+                .set(0.0)
+                .at[:, 4:6]
+                .set(sizes)
+                .at[:, 6:8]
+                .set(0.0)
+            )
             particles = jnp.where((redraw & state.lost)[:, None], fresh, particles)
         particles = clamp(particles, width, height)
         origin = None
@@ -526,6 +554,8 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         est_d = jnp.sqrt(jnp.mean(bhattacharyya(est_hist, state.reference) ** 2))
         best_d = jnp.min(jnp.where(jnp.isfinite(d), d, 1.0))
         lost = (best_d > params.lost_distance) | invalid
+        if config.collapse_ratio > 0:
+            lost = lost | (est_xywh[3] < config.collapse_ratio * state.size0[1])
 
         reference = state.reference
         if config.template_update:
@@ -537,7 +567,9 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         (particles, previous), lw, resampled = rs.resample_if(
             k_res, lw, (particles, state.particles), config.ess_threshold, resampler
         )
-        new_state = ColourState(particles, previous, lw, reference, state.contrast, est_xywh, lost)
+        new_state = ColourState(
+            particles, previous, lw, reference, state.contrast, est_xywh, lost, state.size0
+        )
         info = ColourInfo(
             estimate=est_xywh,
             ess=ess,

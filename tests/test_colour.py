@@ -207,3 +207,24 @@ def test_windowed_filter_tracks_with_and_without_containment(seq, contain):
         )
     )
     assert np.mean(np.asarray(iou(jnp.asarray(out), jnp.asarray(boxes)))) >= 0.6
+
+
+def test_collapsed_box_counts_as_lost_and_redraws_full_size_particles(seq):
+    """A cloud shrunk onto a patch (height < collapse_ratio x initial) is flagged lost; the
+    re-drawn particles take sizes around the initial box's, so the filter can grow back."""
+    frames, boxes = seq
+    frame0 = jax.tree_util.tree_map(lambda a: a[0], frames)
+    state = FILTER.init(PARAMS, jax.random.key(0), frame0, jnp.asarray(boxes[0]))
+    tiny = state.particles.at[:, 4:6].set(jnp.array([8.0, 8.0]))
+    state = state._replace(particles=tiny, previous=tiny)
+    step = jax.jit(FILTER.step)
+    state, info = step(PARAMS, jax.random.key(1), state, frame0)
+    assert bool(info.lost)  # 8 px < 0.25 x 50 px
+    state, info = step(PARAMS, jax.random.key(2), state, frame0)
+    h = np.asarray(state.particles[:, 5])
+    assert (h > 25).any() and np.median(h[h > 25]) > 35  # re-drawn near the initial 50 px
+    no_check = build_colour_filter(ColourConfig(n_particles=128, collapse_ratio=0.0))
+    s2 = no_check.init(PARAMS, jax.random.key(0), frame0, jnp.asarray(boxes[0]))
+    s2 = s2._replace(particles=tiny, previous=tiny)
+    _, info2 = jax.jit(no_check.step)(PARAMS, jax.random.key(1), s2, frame0)
+    assert not bool(info2.lost)
