@@ -469,29 +469,27 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             scale=None if config.tau_height is None else state.particles[:, 5] / config.tau_height,
         )
         if config.recovery_fraction > 0:
-            # On a lost target, re-draw some particles: half uniformly over the
-            # frame, half around the last estimate (a collapsed cloud still sits on
-            # the person), all with sizes around the initial box's (+-20 %).
-            k1, k2, k3, k4 = jax.random.split(k_rec, 4)
-            redraw = jax.random.uniform(k1, (n,)) < config.recovery_fraction
-            anywhere = jax.random.uniform(k2, (n, 2)) * jnp.array([width, height], jnp.float32)
-            z = jax.random.normal(k3, (n, 3))
-            centre = state.estimate[:2] + state.estimate[2:4] / 2
-            nearby = centre + 0.25 * state.size0 * z[:, :2]
-            near = jax.random.uniform(k4, (n,)) < 0.5
-            centres = jnp.where(near[:, None], nearby, anywhere)
-            sizes = state.size0 * jnp.exp(0.2 * z[:, 2:3])
-            fresh = (
-                particles.at[:, :2]
-                .set(centres)
-                .at[:, 2:4]
-                .set(0.0)
-                .at[:, 4:6]
-                .set(sizes)
-                .at[:, 6:8]
-                .set(0.0)
-            )
-            particles = jnp.where((redraw & state.lost)[:, None], fresh, particles)
+
+            def recover(particles: Array) -> Array:
+                # On a lost target, re-draw some particles: half uniformly over the
+                # frame, half around the last estimate (a collapsed cloud still sits
+                # on the person), all with sizes around the initial box's (+-20 %).
+                k1, k2, k3, k4 = jax.random.split(k_rec, 4)
+                redraw = jax.random.uniform(k1, (n,)) < config.recovery_fraction
+                anywhere = jax.random.uniform(k2, (n, 2)) * jnp.array([width, height], jnp.float32)
+                z = jax.random.normal(k3, (n, 3))
+                centre = state.estimate[:2] + state.estimate[2:4] / 2
+                nearby = centre + 0.25 * state.size0 * z[:, :2]
+                near = jax.random.uniform(k4, (n,)) < 0.5
+                centres = jnp.where(near[:, None], nearby, anywhere)
+                sizes = state.size0 * jnp.exp(0.2 * z[:, 2:3])
+                fresh = jnp.concatenate(
+                    [centres, jnp.zeros((n, 2)), sizes, jnp.zeros((n, 2))], axis=1
+                )
+                return jnp.where(redraw[:, None], fresh, particles)
+
+            # Only a lost frame pays for the draws (under vmap both branches run).
+            particles = jax.lax.cond(state.lost, recover, lambda p: p, particles)
         particles = clamp(particles, width, height)
         origin = None
         if config.window is not None and config.contain:
