@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import jax
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,3 +26,19 @@ def shared_data(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"real recording not available: {path} is absent (read-only shared data)")
     return path
+
+
+def figure_joints(arm: float) -> dict[str, tuple[float, float]]:
+    """Joints of the depth tests' capsule figure: ``(x, y)`` mm at adult size around
+    the pelvis (y down), the left arm raised by ``arm`` rad."""
+    return {
+        "head": (0, -760),
+        "neck": (0, -560),
+        "pelvis": (0, 0),
+        "ls": (-180, -480),
+        "rs": (180, -480),
+        "lh": (-200 - 500 * np.sin(arm), -480 + 500 * np.cos(arm)),
+        "rh": (330, 0),
+        "lf": (-150, 850),
+        "rf": (160, 850),
+    }

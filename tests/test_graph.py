@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csg
+from conftest import figure_joints
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -34,17 +35,7 @@ def render_figure(
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     d = np.stack([(u - cx) / FX, (v - cy) / FY, np.ones_like(u)], -1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    j = {
-        "head": (0, -760),
-        "neck": (0, -560),
-        "pelvis": (0, 0),
-        "ls": (-180, -480),
-        "rs": (180, -480),
-        "lh": (-200 - 500 * np.sin(arm), -480 + 500 * np.cos(arm)),
-        "rh": (330, 0),
-        "lf": (-150, 850),
-        "rf": (160, 850),
-    }
+    j = figure_joints(arm)
     pts = {
         n: np.array([k * x, k * y, z0 + (40 * k if n == "lh" else 0)]) for n, (x, y) in j.items()
     }

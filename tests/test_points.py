@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import figure_joints
 
 from cpf_jax.kernels import depth as dk
 from cpf_jax.points import (
@@ -30,17 +31,7 @@ def _joints(t: int):
     x0 = -150.0 + 9.0 * t
     z0 = 2000.0
     arm = 0.35 + 0.25 * np.sin(t / 3.0)
-    j = {
-        "head": (0, -760),
-        "neck": (0, -560),
-        "pelvis": (0, 0),
-        "ls": (-180, -480),
-        "rs": (180, -480),
-        "lh": (-200 - 500 * np.sin(arm), -480 + 500 * np.cos(arm)),
-        "rh": (330, 0),
-        "lf": (-150, 850),
-        "rf": (160, 850),
-    }
+    j = figure_joints(arm)
     return {n: np.array([x0 + K * x, K * y, z0]) for n, (x, y) in j.items()}
 
 
