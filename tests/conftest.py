@@ -42,3 +42,15 @@ def figure_joints(arm: float) -> dict[str, tuple[float, float]]:
         "lf": (-150, 850),
         "rf": (160, 850),
     }
+
+
+#: The figure's capsules: (joint, joint, radius mm at adult size).
+FIGURE_SEGMENTS = (
+    ("head", "head", 100),
+    ("neck", "pelvis", 150),
+    ("ls", "rs", 70),
+    ("ls", "lh", 45),
+    ("rs", "rh", 45),
+    ("pelvis", "lf", 75),
+    ("pelvis", "rf", 75),
+)

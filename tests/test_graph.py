@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csg
-from conftest import figure_joints
+from conftest import FIGURE_SEGMENTS, figure_joints
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -39,15 +39,7 @@ def render_figure(
     pts = {
         n: np.array([k * x, k * y, z0 + (40 * k if n == "lh" else 0)]) for n, (x, y) in j.items()
     }
-    segs = [
-        ("head", "head", 100),
-        ("neck", "pelvis", 150),
-        ("ls", "rs", 70),
-        ("ls", "lh", 45),
-        ("rs", "rh", 45),
-        ("pelvis", "lf", 75),
-        ("pelvis", "rf", 75),
-    ]
+    segs = FIGURE_SEGMENTS
     t = np.full((h, w), np.inf)
     for a, b, r in segs:
         pa, pb, r = pts[a], pts[b], r * k

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import figure_joints
+from conftest import FIGURE_SEGMENTS, figure_joints
 
 from cpf_jax.kernels import depth as dk
 from cpf_jax.points import (
@@ -43,15 +43,7 @@ def render(t: int, seed: int = 0):
     fx, fy, cx, cy = INTR
     d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    segs = [
-        ("head", "head", 100),
-        ("neck", "pelvis", 150),
-        ("ls", "rs", 70),
-        ("ls", "lh", 45),
-        ("rs", "rh", 45),
-        ("pelvis", "lf", 75),
-        ("pelvis", "rf", 75),
-    ]
+    segs = FIGURE_SEGMENTS
     tt = np.full((H, W), np.inf)
     for a, b, r in segs:
         pa, pb, r = j[a], j[b], r * K
