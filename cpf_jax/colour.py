@@ -372,6 +372,17 @@ def contrast_table(bin_idx: Array, contrast: Array) -> Array:
     return integral_image(values)
 
 
+def aspect_log_prior(particles: Array, mean: Array, sigma: Array) -> Array:
+    """Log-normal prior ``[N]`` on the width / height of ``[N, 8]`` particle boxes.
+
+    Person boxes keep a typical shape (pedestrian benchmarks standardise on
+    width/height = 0.41): the prior stops a box collapsing onto the torso or
+    spreading sideways.
+    """
+    log_aspect = jnp.log(particles[:, 4] / particles[:, 5]) - jnp.log(mean)
+    return -0.5 * (log_aspect / sigma) ** 2
+
+
 def _to_xywh(particles: Array) -> Array:
     return box_ops.cxcywh_to_xywh(particles[..., jnp.array([0, 1, 4, 5])])
 
@@ -533,17 +544,8 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         d = jnp.sqrt(d2)
         log_lik = -d2 / (2.0 * params.sigma * params.sigma) + params.contrast_weight * score
         if config.aspect_prior:
-            # Person boxes keep a typical shape (pedestrian benchmarks standardise
-            # on width/height = 0.41): a log-normal prior on the aspect ratio
-            # stops the box collapsing onto the torso or spreading sideways.
-            log_aspect = jnp.log(particles[:, 4] / particles[:, 5]) - jnp.log(params.aspect_mean)
-            log_lik = log_lik - 0.5 * (log_aspect / params.aspect_sigma) ** 2
-        log_lik = jnp.where(jnp.isfinite(log_lik), log_lik, -jnp.inf)
-        invalid = rs.all_weights_invalid(state.log_weights + log_lik)
-        lw = rs.normalise_log_weights(state.log_weights + log_lik)
-        ess = rs.effective_sample_size(lw)
-        # log mean likelihood (incremental evidence) under the previous weights.
-        log_evidence = jax.nn.logsumexp(state.log_weights + jnp.where(invalid, 0.0, log_lik))
+            log_lik = log_lik + aspect_log_prior(particles, params.aspect_mean, params.aspect_sigma)
+        lw, invalid, ess, log_evidence = rs.reweight(state.log_weights, log_lik)
 
         est = _estimate(config, particles, lw, params.robust_radius)
         est_xywh = _to_xywh(est)

@@ -111,6 +111,7 @@ from cpf_jax.colour import (
     COLOUR_BINS,
     ColourConfig,
     ColourParams,
+    aspect_log_prior,
     bin_index,
     build_colour_filter,
     default_colour_params,
@@ -1002,14 +1003,8 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             flags = state.flags
             p_cell = jnp.zeros((n, c), jnp.float32)
         if config.aspect_prior:
-            log_aspect = jnp.log(particles[:, 4] / particles[:, 5]) - jnp.log(params.aspect_mean)
-            log_lik = log_lik - 0.5 * (log_aspect / params.aspect_sigma) ** 2
-        log_lik = jnp.where(jnp.isfinite(log_lik), log_lik, -jnp.inf)
-
-        invalid = rs.all_weights_invalid(state.log_weights + log_lik)
-        lw = rs.normalise_log_weights(state.log_weights + log_lik)
-        ess = rs.effective_sample_size(lw)
-        log_evidence = jax.nn.logsumexp(state.log_weights + jnp.where(invalid, 0.0, log_lik))
+            log_lik = log_lik + aspect_log_prior(particles, params.aspect_mean, params.aspect_sigma)
+        lw, invalid, ess, log_evidence = rs.reweight(state.log_weights, log_lik)
         w = jnp.exp(lw)
         est = _to_xywh(w @ particles)
         vote = w @ p_cell  # [C]

@@ -33,6 +33,7 @@ __all__ = [
     "normalise_log_weights",
     "all_weights_invalid",
     "effective_sample_size",
+    "reweight",
     "systematic",
     "stratified",
     "multinomial",
@@ -71,6 +72,20 @@ def effective_sample_size(log_weights: Array) -> Array:
     """ESS = 1 / sum w_i^2 of the normalised weights, in [1, N]."""
     lw = normalise_log_weights(log_weights)
     return 1.0 / jnp.sum(jnp.exp(2.0 * lw), axis=-1)
+
+
+def reweight(log_weights: Array, log_lik: Array) -> tuple[Array, Array, Array, Array]:
+    """One importance-weight update: ``(log_weights [N], invalid, ess, log_evidence)``.
+
+    Non-finite ``log_lik`` entries count as zero likelihood. ``log_weights`` come
+    back normalised (uniform when every weight is invalid); ``log_evidence`` is the
+    log mean likelihood under the previous weights (incremental evidence).
+    """
+    log_lik = jnp.where(jnp.isfinite(log_lik), log_lik, -jnp.inf)
+    invalid = all_weights_invalid(log_weights + log_lik)
+    lw = normalise_log_weights(log_weights + log_lik)
+    log_evidence = jax.nn.logsumexp(log_weights + jnp.where(invalid, 0.0, log_lik))
+    return lw, invalid, effective_sample_size(lw), log_evidence
 
 
 def _weights(log_weights: Array) -> Array:

@@ -114,3 +114,16 @@ def test_resample_if_threshold_and_jit_vmap():
     keys = jax.random.split(key, 8)
     pb, lwb, didb = jax.vmap(lambda k: rs.resample_if(k, lw, particles, 1.0))(keys)
     assert pb["x"].shape == (8, 6) and bool(jnp.all(didb))
+
+
+def test_reweight_matches_numpy_and_handles_invalid_likelihoods():
+    lw0 = np.log(np.array([0.1, 0.2, 0.3, 0.4], np.float32))
+    lik = np.array([-1.0, np.nan, 0.5, -np.inf], np.float32)
+    lw, invalid, ess, ev = jax.jit(rs.reweight)(jnp.asarray(lw0), jnp.asarray(lik))
+    w = np.exp(lw0) * np.exp(np.where(np.isfinite(lik), lik, -np.inf))
+    np.testing.assert_allclose(np.exp(np.asarray(lw)), w / w.sum(), rtol=1e-5)
+    np.testing.assert_allclose(float(ev), np.log(w.sum()), rtol=1e-5)
+    np.testing.assert_allclose(float(ess), 1 / np.sum((w / w.sum()) ** 2), rtol=1e-5)
+    assert not bool(invalid)
+    lw, invalid, ess, ev = rs.reweight(jnp.asarray(lw0), jnp.full(4, jnp.nan))
+    assert bool(invalid) and np.isfinite(np.asarray(lw)).all() and np.isfinite(float(ev))
