@@ -512,18 +512,25 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         # its scale does not change as the person comes closer.
         area = jnp.maximum(state.estimate[2] * state.estimate[3], 1.0)
 
-        def part_distances(counts: Array) -> Array:
-            # counts [c, K, B] -> [c]: mean squared Bhattacharyya distance of the parts
-            total = jnp.sum(counts, axis=-1)
-            norm = jax.lax.rsqrt(jnp.maximum(total, 1.0))
-            bc = jnp.sum(jnp.sqrt(counts) * sqrt_q, axis=-1) * norm
+        def part_distances(counts: Array, total: Array) -> Array:
+            # counts [c, K, B], total [c, K] pixels -> [c]: mean squared Bhattacharyya
+            # distance of the parts (every pixel has a bin, so total = the area).
+            bc = jnp.sum(jnp.sqrt(counts) * sqrt_q, axis=-1) * jax.lax.rsqrt(
+                jnp.maximum(total, 1.0)
+            )
             d2 = jnp.where(total > 0, jnp.clip(1.0 - bc, 0.0, 1.0), 1.0)
             return jnp.mean(d2, axis=-1)
 
         boxes_xywh = _to_xywh(particles)
         rects = box_ops.xywh_to_rect(box_parts(boxes_xywh, config.parts))
         d2 = rect_reduce(
-            bin_idx, rects, part_distances, n_bins=n_bins, window=config.window, origin=origin
+            bin_idx,
+            rects,
+            part_distances,
+            n_bins=n_bins,
+            window=config.window,
+            origin=origin,
+            with_area=True,
         )
         # The contrast terms are linear in the counts: per-pixel weights summed
         # over the box (and the ring) from a two-channel summed-area table of the

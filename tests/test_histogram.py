@@ -177,6 +177,31 @@ def test_rect_reduce_with_custom_reduction(frames):
     _assert_distances_close(out[:, 0], [_cv_distance(h, q) for h in ref])
 
 
+@pytest.mark.parametrize("window", [WINDOW, None], ids=["window", "general"])
+def test_rect_reduce_with_area(frames, window):
+    # with_area passes each clipped rect's pixel count: equal to the counts' total
+    # here (every pixel has an H-S bin), for rects inside, across and outside the
+    # frame, on the fast path (with fallback), the general path and under vmap.
+    _, hsvs, bins = frames
+    _, cloud = _cloud_rects(16, n=24)
+    rects = np.concatenate([np.asarray(cloud), np.asarray(EDGE_RECTS)]).astype(np.int32)
+
+    def reduce_fn(counts, area):
+        return jnp.stack([area, counts.sum(-1)], axis=-1)
+
+    f = jax.jit(
+        functools.partial(
+            H.rect_reduce, reduce_fn=reduce_fn, n_bins=NB, window=window, chunk=8, with_area=True
+        )
+    )
+    out = np.asarray(f(bins[0], rects))
+    ref = _ref_hists(hsvs[0], rects).sum(-1)
+    np.testing.assert_array_equal(out[:, 0], ref)
+    np.testing.assert_array_equal(out[:, 1], ref)
+    batched = np.asarray(jax.vmap(f, in_axes=(0, None))(np.stack(bins[:2]), rects))
+    np.testing.assert_array_equal(batched[1, :, 0], _ref_hists(hsvs[1], rects).sum(-1))
+
+
 def test_general_path_single_rect(frames):
     _, hsvs, bins = frames
     out = np.asarray(_general(bins[0], EDGE_RECTS[0]))
