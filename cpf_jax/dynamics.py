@@ -69,10 +69,13 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from .kernels import fastrand
+
 __all__ = [
     "THESIS_TAU",
     "DEFAULT_TAU",
     "MODELS",
+    "RNGS",
     "MotionParams",
     "propagate",
 ]
@@ -86,6 +89,24 @@ THESIS_TAU = (10.0, 10.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1)
 DEFAULT_TAU = (15.0, 15.0, 0.6, 0.6, 5.5, 5.5, 0.8, 0.8)
 
 MODELS = ("ar1", "ar1_fixed", "ar2", "ar2_fixed", "random_walk")
+
+#: Generators of the motion noise: "jax" (``jax.random``, threefry) or "hash"
+#: (``kernels.fastrand``: one threefry call for two seeds, then a counter hash;
+#: about 3x cheaper for the bulk draw, same keys-in, numbers-out contract).
+RNGS = ("jax", "hash")
+
+
+def _draws(rng: str):
+    """``(normal, uniform)`` samplers ``f(key, shape)`` of an ``RNGS`` name."""
+    if rng == "jax":
+        return (
+            lambda k, shape: jax.random.normal(k, shape, jnp.float32),
+            lambda k, shape: jax.random.uniform(k, shape),
+        )
+    if rng == "hash":
+        return fastrand.normal, fastrand.uniform
+    raise ValueError(f"unknown rng {rng!r}; expected one of {RNGS}")
+
 
 # thesis eq. 3.26, applied to (x, y, x', y') and to (w, h, w', h')
 _A2 = jnp.array(
@@ -137,7 +158,7 @@ def _ar2(particles: Array, previous: Array, noise: Array) -> Array:
     return jnp.concatenate([pos, size], axis=-1) + noise
 
 
-def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionParams):
+def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionParams, uniform):
     """Replace the position / size-velocity noise of guided particles (see module docstring)."""
     n = particles.shape[0]
     vx, vy = particles[:, 2], particles[:, 3]
@@ -156,7 +177,7 @@ def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionPara
     size_scale = (1.0 + motion.size_gain_y * jnp.abs(vy)) / (1.0 + motion.size_gain_x * jnp.abs(vx))
     guided = noise.at[:, 0].set(dx).at[:, 1].set(dy)
     guided = guided.at[:, 6].multiply(size_scale).at[:, 7].multiply(size_scale)
-    is_guided = jax.random.uniform(key, (n,)) < motion.guided_fraction
+    is_guided = uniform(key, (n,)) < motion.guided_fraction
     return jnp.where(is_guided[:, None], guided, noise)
 
 
@@ -170,19 +191,21 @@ def propagate(
     model: str = "ar1",
     hierarchical: bool = False,
     scale: Array | None = None,
+    rng: str = "jax",
 ) -> Array:
     """Draw the next particle states from the motion model; ``[N, 8] -> [N, 8]``.
 
-    ``model`` and ``hierarchical`` are static. ``scale`` (``[N]``, optional)
-    multiplies every particle's noise, e.g. by its box size relative to a
-    reference so that ``tau`` is expressed for a reference box. Sizes are not
-    clipped here; the filter keeps them in range.
+    ``model``, ``hierarchical`` and ``rng`` (one of ``RNGS``) are static.
+    ``scale`` (``[N]``, optional) multiplies every particle's noise, e.g. by
+    its box size relative to a reference so that ``tau`` is expressed for a
+    reference box. Sizes are not clipped here; the filter keeps them in range.
     """
     if model not in MODELS:
         raise ValueError(f"unknown motion model {model!r}; expected one of {MODELS}")
+    normal, uniform = _draws(rng)
     k_noise, k_guide = jax.random.split(key)
     tau = jnp.asarray(tau, jnp.float32)
-    z = jax.random.normal(k_noise, particles.shape, jnp.float32)
+    z = normal(k_noise, particles.shape)
     # Correlated size noise: width noise = rho * (height's normal) + sqrt(1 - rho^2) * own,
     # scaled by the box's aspect so that w and h change in proportion.
     rho = jnp.clip(jnp.asarray(motion.size_correlation, jnp.float32), 0.0, 0.999)
@@ -198,7 +221,7 @@ def propagate(
     if fixed:
         noise = noise.at[:, 4:].set(0.0)
     if hierarchical and model in ("ar1", "ar1_fixed"):
-        noise = _guided_noise(k_guide, particles, noise, motion)
+        noise = _guided_noise(k_guide, particles, noise, motion, uniform)
         if fixed:
             noise = noise.at[:, 4:].set(0.0)
     if model in ("ar1", "ar1_fixed"):

@@ -409,6 +409,8 @@ def _window_counts(
     pieces: tuple[int, int] = (1, 1),
     reduce_fn=None,
     with_area: bool = False,
+    then=None,
+    window_check: bool = False,
 ) -> Array:
     """Exact counts ``[N, *C, n_bins] float32`` of ``rects`` ∩ window, or ``reduce_fn`` of them.
 
@@ -418,7 +420,9 @@ def _window_counts(
     uint16 table stays exact for rects of 65,536 pixels or more).
     ``reduce_fn`` is applied to the counts chunk by chunk; with ``with_area``
     it is called as ``reduce_fn(counts, area)`` with each rect's pixel count
-    ``area [c, *C] float32`` (within the window).
+    ``area [c, *C] float32`` (within the window). ``then`` (see ``rect_reduce``)
+    gets a counter on the same table; with ``window_check`` its rects that are
+    not inside the window are counted by the exact general path instead.
     """
     h, w = shape
     oy, ox = origin[0], origin[1]
@@ -436,7 +440,23 @@ def _window_counts(
         counts = jnp.sum(_corner_counts(table, i), axis=-2)
         return reduce_fn(counts, a) if with_area else reduce_fn(counts)
 
-    return _chunked(count, (idx, area), chunk, (1, 0))
+    out = _chunked(count, (idx, area), chunk, (1, 0))
+    if then is None:
+        return out
+
+    def table_counts(more: Array) -> Array:
+        more = jnp.asarray(more, jnp.int32)
+        part = jnp.clip(more, lo, hi) - lo
+        counts = jnp.sum(_corner_counts(table, _corner_index(_pieces(part, *pieces), w + 1)), -2)
+        if not window_check:
+            return counts
+        return lax.cond(
+            window_covers(more, origin, shape, dtype),
+            lambda: counts,
+            lambda: box_histograms(bins, more, n_bins),
+        )
+
+    return out, then(out, lambda more: table_counts(clip_rect(more, *bins.shape[::-1])))
 
 
 def _frame_counts(
@@ -447,6 +467,7 @@ def _frame_counts(
     chunk: int | None,
     reduce_fn=None,
     with_area: bool = False,
+    then=None,
 ):
     """Exact counts of any clipped rects from one full-frame uint16 table (pieces if needed)."""
     fh, fw = bins.shape
@@ -461,6 +482,7 @@ def _frame_counts(
         pieces=_split_grid((fh, fw)),
         reduce_fn=reduce_fn,
         with_area=with_area,
+        then=then,
     )
 
 
@@ -476,6 +498,7 @@ def rect_reduce(
     fallback: bool = True,
     chunk: int | None = DEFAULT_CHUNK,
     with_area: bool = False,
+    then=None,
 ):
     """Exact counts of ``rects [N, *C, 4]`` reduced per rect by ``reduce_fn``.
 
@@ -492,6 +515,15 @@ def rect_reduce(
     ``with_area`` and ``reduce_fn`` are static; ``origin (oy, ox)`` is dynamic (default:
     ``window_origin`` of the rects). A custom ``reduce_fn`` lets a filter
     compute several per-box scores from one pass over the table.
+
+    ``then(out, count) -> result`` (static) runs after the reduction on the
+    same table, and ``rect_reduce`` returns ``(out, result)``: ``count(rects
+    [M, ..., 4]) -> [M, ..., n_bins] float32`` gives exact histograms of a few
+    more rects that depend on ``out`` (e.g. the histogram of the estimate a
+    filter derives from the particles' scores) without building a second
+    table. On the windowed path, rects that do not lie inside the window are
+    counted by ``box_histograms`` instead (a ``lax.cond``), so they are exact
+    too; the rects need not be clipped.
     """
     fh, fw = bins.shape
     count_dtype = _check_count_dtype(count_dtype)
@@ -501,7 +533,13 @@ def rect_reduce(
 
     def general(rects):
         return _frame_counts(
-            bins, rects, n_bins=n_bins, chunk=chunk, reduce_fn=reduce_fn, with_area=with_area
+            bins,
+            rects,
+            n_bins=n_bins,
+            chunk=chunk,
+            reduce_fn=reduce_fn,
+            with_area=with_area,
+            then=then,
         )
 
     if window is None:
@@ -523,6 +561,8 @@ def rect_reduce(
                 chunk=chunk,
                 reduce_fn=reduce_fn,
                 with_area=with_area,
+                then=then,
+                window_check=True,
             )
 
         if fallback:
@@ -530,7 +570,9 @@ def rect_reduce(
             out = lax.cond(ok, fast, general, rects)
         else:
             out = fast(rects)
-    return out[0] if single else out
+    if single:
+        out = (out[0][0], out[1]) if then is not None else out[0]
+    return out
 
 
 # Earlier private name, kept for callers that used it.

@@ -11,6 +11,7 @@ from cpf_jax.colour import (
     CONTRAST_SCALE,
     ColourConfig,
     bin_index,
+    box_parts,
     build_colour_filter,
     contrast_table,
     default_colour_params,
@@ -207,6 +208,33 @@ def test_windowed_filter_tracks_with_and_without_containment(seq, contain):
         )
     )
     assert np.mean(np.asarray(iou(jnp.asarray(out), jnp.asarray(boxes)))) >= 0.6
+
+
+@pytest.mark.parametrize("window", [True, False], ids=["window", "whole-frame"])
+def test_estimate_distance_equals_a_direct_count(seq, window):
+    # The estimate's histogram comes from the particles' integral table (rect_reduce
+    # then=); it must equal a direct count of the estimate's stripes.
+    frames, boxes = seq
+    config = ColourConfig(n_particles=64)
+    if window:
+        config = config.with_window((20, 50), (H, W))
+    filt = build_colour_filter(config)
+    state = jax.jit(filt.init)(
+        PARAMS, jax.random.key(0), Frame(frames.colour[0], frames.depth[0]), jnp.asarray(boxes[0])
+    )
+    step = jax.jit(filt.step)
+    for t in range(1, 6):
+        frame = Frame(frames.colour[t], frames.depth[t])
+        state, info = step(PARAMS, jax.random.key(t), state, frame)
+        idx = bin_index(frame.colour, config.bins)
+        rects = xywh_to_rect(box_parts(info.estimate, config.parts))
+        hist = np.asarray(box_histograms(idx, rects, config.n_bins))
+        hist = hist / np.maximum(hist.sum(-1, keepdims=True), 1.0)
+        ref = np.asarray(state.reference)
+        d2 = 1.0 - np.sum(np.sqrt(hist * ref), axis=-1)
+        np.testing.assert_allclose(
+            float(info.estimate_distance), np.sqrt(np.mean(np.clip(d2, 0, 1))), atol=2e-3
+        )
 
 
 def test_collapsed_box_counts_as_lost_and_redraws_full_size_particles(seq):

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cpf_jax.dynamics import MODELS, THESIS_TAU, default_motion_params, propagate
+from cpf_jax.dynamics import MODELS, RNGS, THESIS_TAU, default_motion_params, propagate
 
 ZERO_TAU = jnp.zeros(8)
 STATE = jnp.array([[100.0, 80.0, 3.0, -2.0, 40.0, 90.0, 0.5, 1.0]])
@@ -63,7 +63,8 @@ def test_random_walk_has_no_velocity():
     np.testing.assert_allclose(out[:, 0].std(), 10.0, rtol=0.1)
 
 
-def test_ar1_noise_scales_are_tau():
+@pytest.mark.parametrize("rng", RNGS)
+def test_ar1_noise_scales_are_tau(rng):
     n = 20_000
     independent = MP._replace(size_correlation=jnp.float32(0.0))
     out = np.asarray(
@@ -74,10 +75,21 @@ def test_ar1_noise_scales_are_tau():
             jnp.asarray(THESIS_TAU),
             independent,
             model="ar1",
+            rng=rng,
         )
     )
     # position gets n1 (tau=10) only; velocity n3 (tau=1)
     np.testing.assert_allclose(out.std(axis=0), THESIS_TAU, rtol=0.03)
+    still = propagate(KEY, STATE, PREV, jnp.zeros(8), independent, model="ar1", rng=rng)
+    np.testing.assert_allclose(out.mean(axis=0), np.asarray(still[0]), atol=0.25)
+    # the components' noises are uncorrelated
+    c = np.corrcoef(out.T)
+    assert np.max(np.abs(c - np.eye(8))) < 0.04
+
+
+def test_unknown_rng_is_a_clear_error():
+    with pytest.raises(ValueError, match="unknown rng"):
+        propagate(KEY, STATE, PREV, jnp.asarray(THESIS_TAU), MP, rng="mersenne")
 
 
 def test_correlated_size_noise_scales_width_and_height_together():
