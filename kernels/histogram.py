@@ -208,8 +208,15 @@ def rect_sums(table: Array, rects: Array) -> Array:
     empty or outside rect sums to 0)."""
     height, width = table.shape[0] - 1, table.shape[1] - 1
     r = clip_rect(jnp.asarray(rects, jnp.int32), width, height)
-    x0, y0, x1, y1 = (r[..., i] for i in range(4))
-    return table[y1, x1] - table[y0, x1] - table[y1, x0] + table[y0, x0]
+    # Flat corner rows, materialised once (see _corner_index): fused, the index
+    # arithmetic was redone for every channel of every corner.
+    idx = _corner_index(r, width + 1)
+    flat = table.reshape(-1, table.shape[-1])
+
+    def row(k):
+        return flat.at[idx[k]].get(mode="promise_in_bounds")
+
+    return row(0) - row(1) - row(2) + row(3)
 
 
 # ----------------------------------------------------------------------------- window placement

@@ -127,3 +127,45 @@ def test_reweight_matches_numpy_and_handles_invalid_likelihoods():
     assert not bool(invalid)
     lw, invalid, ess, ev = rs.reweight(jnp.asarray(lw0), jnp.full(4, jnp.nan))
     assert bool(invalid) and np.isfinite(np.asarray(lw)).all() and np.isfinite(float(ev))
+
+
+@pytest.mark.parametrize("num", [None, 37, 5000])
+def test_systematic_equals_a_search_of_its_positions(num):
+    # The O(N) histogram form against the textbook search of the same positions
+    # (searchsorted on the same cumulative weights), slot for slot, on peaked,
+    # flat and partly -inf weights, under jit and vmap.
+    n = 3000
+    m = n if num is None else num
+
+    def searched(key, lw):
+        u = jax.random.uniform(key, (), jnp.float32)
+        positions = (u + jnp.arange(m, dtype=jnp.float32)) / m
+        return rs._search(rs._weights(lw), positions)
+
+    both = jax.jit(lambda k, lw: (rs.systematic(k, lw, num), searched(k, lw)))
+    keys = jax.random.split(jax.random.key(5), 8)
+    for i, key in enumerate(keys):
+        lw = jax.random.normal(jax.random.fold_in(key, 1), (n,)) * (0.1, 3.0, 30.0, 1.0)[i % 4]
+        if i % 4 == 3:
+            lw = lw.at[::3].set(-jnp.inf)
+        idx, ref = (np.asarray(a) for a in both(key, lw))
+        np.testing.assert_array_equal(idx, ref)
+        # and the search itself is NumPy's, up to float32 rounding of the sums
+        assert (
+            np.mean(
+                idx
+                == np.clip(
+                    np.searchsorted(
+                        np.cumsum(np.exp(np.asarray(rs.normalise_log_weights(lw), np.float64))),
+                        (np.float64(jax.random.uniform(key, ())) + np.arange(m)) / m,
+                        side="right",
+                    ),
+                    0,
+                    n - 1,
+                )
+            )
+            > 0.99
+        )
+    batched = jax.vmap(lambda k: rs.systematic(k, jnp.zeros(n)))(keys)
+    assert batched.shape == (8, n)
+    np.testing.assert_array_equal(np.asarray(batched[0]), np.arange(n))
