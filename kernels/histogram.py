@@ -349,24 +349,34 @@ def _chunked(fn, args: tuple, chunk: int | None, axis: tuple[int, ...]):
     """``fn(*args)`` over sequential blocks of ``chunk`` rows of each arg's ``axis``.
 
     ``args[i]`` is cut along ``axis[i]`` (the rect axis, length N in every arg);
-    results are concatenated along their leading axis.
+    results are concatenated along their leading axis. Each block is a
+    ``dynamic_slice`` of the args in place (no transposed copy of them) and is
+    written into the preallocated result (``fori_loop``).
     """
     n = args[0].shape[axis[0]]
     if chunk is None or n <= chunk:
         return fn(*args)
-    n_main = (n // chunk) * chunk
-
-    def blocks(a, ax):
-        a = lax.slice_in_dim(a, 0, n_main, axis=ax)
-        a = a.reshape(a.shape[:ax] + (n // chunk, chunk) + a.shape[ax + 1 :])
-        return jnp.moveaxis(a, ax, 0)
-
+    n_chunks = n // chunk
+    n_main = n_chunks * chunk
     pairs = tuple(zip(args, axis, strict=True))
-    main = lax.map(lambda xs: fn(*xs), tuple(blocks(a, ax) for a, ax in pairs))
-    main = jax.tree_util.tree_map(lambda m: m.reshape((n_main,) + m.shape[2:]), main)
+
+    def block(start, size):
+        return fn(*(lax.dynamic_slice_in_dim(a, start, size, axis=ax) for a, ax in pairs))
+
+    # Every block runs the same loop body (one compiled reduction for all).
+    shapes = jax.eval_shape(lambda: block(0, chunk))
+    out = jax.tree_util.tree_map(lambda r: jnp.zeros((n_main,) + r.shape[1:], r.dtype), shapes)
+
+    def body(i, out):
+        res = block(i * chunk, chunk)
+        return jax.tree_util.tree_map(
+            lambda o, r: lax.dynamic_update_slice_in_dim(o, r, i * chunk, axis=0), out, res
+        )
+
+    main = lax.fori_loop(0, n_chunks, body, out)
     if n_main == n:
         return main
-    rest = fn(*(lax.slice_in_dim(a, n_main, n, axis=ax) for a, ax in pairs))
+    rest = block(n_main, n - n_main)
     return jax.tree_util.tree_map(lambda m, r: jnp.concatenate([m, r], axis=0), main, rest)
 
 
