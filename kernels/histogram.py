@@ -55,7 +55,7 @@ each written and read twice), so the fast path (``window=(wh, ww)``):
   (otherwise XLA fuses the index arithmetic into the gather and redoes it for
   each of the ``n_bins`` outputs; a trailing corner axis made cutting them
   into chunks an element-wise transpose), then gathers and reduces in
-  sequential chunks of ``chunk`` rects (default ``DEFAULT_CHUNK = 8192``) so
+  sequential chunks of ``chunk`` rects (default ``DEFAULT_CHUNK = 4096``) so
   that no ``[N, n_bins]`` block exists: at N = 100k an unchunked one is
   25.6 MB of fresh pages on every call;
 * materialises each chunk's integer counts before the caller's reduction
@@ -135,8 +135,12 @@ _U16_LIMIT = 1 << 16
 
 #: Rects per sequential chunk on the windowed path: bounds the ``[chunk, n_bins]``
 #: temporaries (at N = 100k an unchunked ``[N, 64]`` float32 block is 25.6 MB,
-#: freshly page-faulted on every call on CPU).
-DEFAULT_CHUNK = 8192
+#: freshly page-faulted on every call on CPU). 4096 keeps a chunk's integer
+#: counts (4096 boxes x 2 parts x 72 bins x 2 bytes = 1.2 MB) in a 2 MB L2
+#: cache: the N = 100k colour step took 40 ms with 8192, 34 ms with 4096 and
+#: 36-42 ms with 2048 or 1024 on the reference 2-core CPU (a GPU would want
+#: larger chunks: pass ``chunk``).
+DEFAULT_CHUNK = 4096
 
 #: Up to this many rects (static), ``box_histograms`` counts each rect by a
 #: masked scatter-add over the frame (about 0.4 ms per rect on 512 x 424)
@@ -450,8 +454,8 @@ def _window_counts(
     # Clamping both corners into the same interval keeps x0 <= x1: empty stays empty.
     local = jnp.clip(rects, lo, hi) - lo
     area = ((local[..., 2] - local[..., 0]) * (local[..., 3] - local[..., 1])).astype(jnp.float32)
-    idx = _corner_index(_pieces(local, *pieces), w + 1)  # [4, N, *C, P]
     reduce_fn = reduce_fn or (lambda counts, *_: counts)
+    idx = _corner_index(_pieces(local, *pieces), w + 1)  # [4, N, *C, P]
 
     def count(i, a):
         counts = jnp.sum(_corner_counts(table, i), axis=-2)

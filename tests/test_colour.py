@@ -178,6 +178,26 @@ def test_config_validation():
         ColourConfig(n_particles=0)
     with pytest.raises(ValueError, match="estimator"):
         ColourConfig(estimator="median")
+    with pytest.raises(ValueError, match="chunk"):
+        ColourConfig(chunk=0)
+    with pytest.raises(ValueError, match="rng"):
+        ColourConfig(rng="mt19937")
+
+
+def test_chunk_size_does_not_change_the_step(seq):
+    # Blocking the gathers is a speed setting only: chunked and unchunked steps agree.
+    frames, boxes = seq
+    frame = Frame(frames.colour[1], frames.depth[1])
+    outs = []
+    for chunk in (None, 48):
+        config = ColourConfig(n_particles=200, chunk=chunk).with_window((20, 50), (H, W))
+        filt = build_colour_filter(config)
+        f0 = Frame(frames.colour[0], frames.depth[0])
+        state = filt.init(PARAMS, jax.random.key(0), f0, jnp.asarray(boxes[0]))
+        state, info = jax.jit(filt.step)(PARAMS, jax.random.key(1), state, frame)
+        outs.append((np.asarray(state.particles), np.asarray(info.estimate)))
+    np.testing.assert_allclose(outs[0][0], outs[1][0], atol=1e-4)
+    np.testing.assert_allclose(outs[0][1], outs[1][1], atol=1e-3)
 
 
 def test_contrast_sums_equal_histogram_dot_weights(seq):
