@@ -76,6 +76,23 @@ the particles search a wider area. Templates are updated with the forgetting
 factor ``lambda = 1 - template_rate`` (colour) / ``1 - depth_rate`` (depth),
 eq. 7, only in cells voted not occluded; occluded cells keep theirs (eq. 8).
 
+Data-driven proposal (``"rgbd"`` and the grid variants; ``detector_fraction``)
+-----------------------------------------------------------------------------
+A person near the camera moves half a box or more per frame, far beyond the motion
+noise. The transition model therefore has a fast-motion component,
+``p(c_t | x_{t-1}) = (1 - fast_fraction) p_motion + fast_fraction N(mean, (fast_sigma
+h)^2)`` on the box centre ``c_t``, and the centres are drawn from a mixture proposal
+(as the boosted particle filter, Okuma et al. 2004): with probability
+``detector_fraction`` from a "detector" -- a coarse map (``detector_stride``) of boxes
+of the estimate's size scored by their share of foreground at the target's depth
+(``detector_log_map``), near the prediction -- otherwise from the motion model. Sizes
+and velocities come from the motion model either way, so each particle's weight gets
+the exact ratio ``p(c_t | x_{t-1}) / ((1 - a) p_motion + a q_det)`` of the centre
+densities (``motion_position_log_density``, ``detector_log_density``). The detector is
+used (``a > 0``) only when the box at the predicted centre holds less than
+``detector_need`` of the best share near it, and neither it nor the fast component while
+the target is voted occluded (the spreading and the recovery search take over then).
+
 Reported box (``info.report``, what metrics score). ``"rgbd"`` / ``"grid"``:
 the estimate (weighted mean). ``"grid-occlusion"``: the union of the cells
 voted visible (``report="cells"``, the ground truth is the tight box of the
@@ -124,11 +141,14 @@ from cpf_jax.kernels.background import Background, foreground_mask, update_backg
 from cpf_jax.kernels.cells import (
     beta_log_density,
     border_strips,
+    coarse_counts,
     depth_bin_index,
     grid_cells,
     histogram_fraction_below,
     histogram_quantile,
+    map_cell_of,
     side_cells,
+    window_sums,
 )
 from cpf_jax.kernels.histogram import bhattacharyya, box_histograms, rect_reduce, suggest_window
 from cpf_jax.types import Filter, Frame
@@ -212,6 +232,11 @@ class RGBDConfig:
     # foreground pixels at the target's depth (data-driven search; 0: spreading only).
     recovery_fraction: float = 0.2
     recovery_stride: int = 4  # the pixel search runs on a grid of this stride
+    # Data-driven proposal (module docstring): share of the particles whose position is
+    # drawn around boxes full of foreground at the target's depth (0: motion prior only),
+    # on a map of this stride (pixels).
+    detector_fraction: float = 0.2
+    detector_stride: int = 8
     colour: ColourConfig | None = None  # the "rgb" variant's colour filter (None: default)
     # Background pixels count as one extra colour bin: the histogram of the paper's
     # "preprocessed foreground RGB image" (background blacked out), so the colour term
@@ -249,6 +274,10 @@ class RGBDConfig:
             raise ValueError(
                 f"a full 2^C transition matrix needs C <= 16 cells, got {self.n_cells}"
             )
+        if not 0.0 <= self.detector_fraction < 1.0:
+            raise ValueError(f"detector_fraction must be in [0, 1), got {self.detector_fraction}")
+        if self.detector_stride < 1:
+            raise ValueError(f"detector_stride must be >= 1, got {self.detector_stride}")
         if self.n_cells > 30:
             raise ValueError(f"at most 30 cells (flags are int32 bit masks), got {self.n_cells}")
         lo, hi = self.depth_range
@@ -334,6 +363,13 @@ class RGBDParams(NamedTuple):
     min_coverage: Array  # grid-occlusion: fewer target pixels (share of the box): hidden
     max_drift: Array  # mm, cap of depth_speed * age
     search_drift_max: Array  # mm, cap of the widening of the target gate while hidden
+    fast_fraction: Array  # motion model: share of the fast-motion component ...
+    fast_sigma: Array  # ... a Gaussian of this sd (fraction of the box height) around the mean
+    detector_min_ratio: Array  # detector: least share of target-depth foreground in a box,
+    # relative to the best box near the prediction ...
+    detector_floor: Array  # ... and absolute
+    detector_need: Array  # detector draws only when the prediction's share is below this x best
+    detector_power: Array  # detector: proposal density ~ ratio ** power x locality
     aspect_mean: Array  # log-normal prior on width / height (config.aspect_prior)
     aspect_sigma: Array
     tau: Array  # [8] motion noise (dynamics)
@@ -381,6 +417,12 @@ PARAM_CONSTRAINTS = RGBDParams(
     min_coverage="sigmoid",
     max_drift="softplus",
     search_drift_max="softplus",
+    fast_fraction="sigmoid",
+    fast_sigma="softplus",
+    detector_min_ratio="sigmoid",
+    detector_floor="sigmoid",
+    detector_need="sigmoid",
+    detector_power="softplus",
     aspect_mean="softplus",
     aspect_sigma="softplus",
     tau="softplus",
@@ -438,6 +480,12 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         min_coverage=f(0.02),
         max_drift=f(500.0),
         search_drift_max=f(900.0),
+        fast_fraction=f(0.05),
+        fast_sigma=f(0.5),
+        detector_min_ratio=f(0.6),
+        detector_floor=f(0.1),
+        detector_need=f(0.9),
+        detector_power=f(4.0),
         aspect_mean=f(0.41),
         aspect_sigma=f(0.3),
         tau=jnp.asarray(RGBD_TAU, jnp.float32),
@@ -729,6 +777,139 @@ def box_log_density(params: RGBDParams, fg_sum: Array, area_sum: Array) -> Array
     return jnp.where(area_sum > 0, params.beta_weight * lp, 0.0)
 
 
+# ----------------------------------------------------------------------------- proposal
+
+
+def _gauss2_log_density(d: Array, cxx: Array, cxy: Array, cyy: Array) -> Array:
+    """``log N(d; 0, [[cxx, cxy], [cxy, cyy]])`` for offsets ``d [N, 2]`` (covariances ``[N]``)."""
+    det = jnp.maximum(cxx * cyy - cxy * cxy, 1e-12)
+    quad = (cyy * d[:, 0] ** 2 - 2.0 * cxy * d[:, 0] * d[:, 1] + cxx * d[:, 1] ** 2) / det
+    return -jnp.log(2.0 * jnp.pi) - 0.5 * jnp.log(det) - 0.5 * quad
+
+
+def motion_position_log_density(
+    config: RGBDConfig,
+    params: RGBDParams,
+    ancestors: Array,
+    mean_xy: Array,
+    xy: Array,
+    scale: Array | None,
+    extra: Array | float = 0.0,
+) -> Array:
+    """``log p(xy | ancestor) [N]`` of the box centre drawn by ``dynamics.propagate``.
+
+    ``mean_xy [N, 2]``: the noise-free prediction; ``scale [N]`` the noise scale
+    (``tau_height``), ``extra`` the occlusion spreading (extra isotropic noise of
+    ``extra * tau``). The centre noise of every model is Gaussian; with the
+    hierarchical proposal (``ar1`` models) it is the mixture of the plain one and
+    the guided one, stretched along the ancestor's velocity (``dynamics``).
+    """
+    sx = params.tau[0] * (1.0 if scale is None else scale)
+    sy = params.tau[1] * (1.0 if scale is None else scale)
+    sx = jnp.broadcast_to(sx, xy.shape[:1])
+    sy = jnp.broadcast_to(sy, xy.shape[:1])
+    e2 = jnp.asarray(extra, jnp.float32) ** 2
+    d = xy - mean_xy
+    zero = jnp.zeros_like(sx)
+    plain = _gauss2_log_density(d, sx**2 * (1.0 + e2), zero, sy**2 * (1.0 + e2))
+    if not (config.hierarchical and config.model in ("ar1", "ar1_fixed")):
+        return plain
+    m = params.motion
+    vx, vy = ancestors[:, 2], ancestors[:, 3]
+    speed = jnp.sqrt(vx * vx + vy * vy)
+    safe = speed > 1e-6
+    ex = jnp.where(safe, vx / jnp.where(safe, speed, 1.0), 1.0)
+    ey = jnp.where(safe, vy / jnp.where(safe, speed, 1.0), 0.0)
+    stretch = 1.0 + m.guide_gain * speed / (speed + m.guide_speed)
+    va, vc = (sx * stretch) ** 2, (sy / stretch) ** 2  # along e, across (e_perp = (-ey, ex))
+    cxx = va * ex * ex + vc * ey * ey + e2 * sx**2
+    cyy = va * ey * ey + vc * ex * ex + e2 * sy**2
+    cxy = (va - vc) * ex * ey
+    guided = _gauss2_log_density(d, cxx, cxy, cyy)
+    g = jnp.clip(m.guided_fraction, 0.0, 1.0)
+    return jnp.logaddexp(_log_clip(1.0 - g) + plain, _log_clip(g) + guided)
+
+
+def detector_log_map(
+    config: RGBDConfig,
+    params: RGBDParams,
+    target_pixels: Array,
+    box_wh: Array,
+    centre: Array,
+    sigma: Array,
+) -> tuple[Array, Array, Array]:
+    """Log-density of the detector proposal over the cells of a coarse map.
+
+    ``target_pixels [H, W] bool``: foreground at the target's depth. Each cell of the
+    ``detector_stride`` map scores the share ``r`` of target pixels in a box of
+    ``box_wh`` centred on it; the proposal is ``∝ r^detector_power x N(cell; centre,
+    sigma^2)`` over the cells within ``3 sigma`` of ``centre`` with ``r >=
+    max(detector_min_ratio * best r there, detector_floor)``. Returns the normalised
+    log-probabilities ``[h * w]`` of the cells (``-inf`` off the support) and whether
+    the support is non-empty (when it is empty the log-probabilities are uniform and
+    must not be used), and ``fit``: the ratio of a box at ``centre`` over the best
+    one near it (1 when there is none).
+    """
+    s = config.detector_stride
+    counts = coarse_counts(target_pixels, s) / float(s * s)  # [h, w] share per block
+    hh, ww = counts.shape
+    rx = jnp.round(box_wh[0] / (2.0 * s)).astype(jnp.int32)
+    ry = jnp.round(box_wh[1] / (2.0 * s)).astype(jnp.int32)
+    # Share inside the frame (a box that sticks out is clamped to the frame).
+    ratio = window_sums(counts, ry, rx) / jnp.maximum(
+        window_sums(jnp.ones_like(counts), ry, rx), 1.0
+    )
+    cx = (jnp.arange(ww, dtype=jnp.float32) + 0.5) * s
+    cy = (jnp.arange(hh, dtype=jnp.float32) + 0.5) * s
+    d2 = (cx[None] - centre[0]) ** 2 + (cy[:, None] - centre[1]) ** 2
+    # Support: at least detector_min_ratio of the best ratio within 3 sigma of the centre
+    # (people's silhouettes fill from a third to most of their box), and at least
+    # detector_floor in absolute terms (specks of noise are no detections).
+    near = d2 <= 9.0 * jnp.maximum(sigma, 1.0) ** 2
+    best = jnp.max(jnp.where(near, ratio, 0.0))
+    ok = near & (ratio >= jnp.maximum(params.detector_min_ratio * best, params.detector_floor))
+    logits = (
+        params.detector_power * jnp.log(jnp.maximum(ratio, 1e-6))
+        - 0.5 * d2 / jnp.maximum(sigma, 1.0) ** 2
+    )
+    logits = jnp.where(ok, logits, -jnp.inf).reshape(-1)
+    available = jnp.any(ok)
+    logits = jnp.where(available, logits, 0.0)
+    # How well a box at the centre itself does, relative to the best one near it.
+    cell = map_cell_of(centre, s, (hh, ww))
+    at_centre = jnp.where(cell >= 0, ratio.reshape(-1)[jnp.maximum(cell, 0)], 0.0)
+    fit = jnp.where(best > 0, at_centre / jnp.maximum(best, 1e-6), 1.0)
+    return logits - jax.nn.logsumexp(logits), available, fit
+
+
+def detector_draw(
+    key: Array, config: RGBDConfig, log_map: Array, shape: tuple[int, int], n: int
+) -> Array:
+    """``[n, 2]`` box centres: a cell of ``log_map`` (``[h * w]``), then uniform inside it."""
+    s = config.detector_stride
+    k1, k2 = jax.random.split(key)
+    cell = jax.random.categorical(k1, log_map, shape=(n,))
+    u = jax.random.uniform(k2, (n, 2))
+    ww = shape[1]
+    return jnp.stack(
+        [
+            ((cell % ww).astype(jnp.float32) + u[:, 0]) * s,
+            ((cell // ww).astype(jnp.float32) + u[:, 1]) * s,
+        ],
+        axis=-1,
+    )
+
+
+def detector_log_density(
+    config: RGBDConfig, log_map: Array, shape: tuple[int, int], xy: Array
+) -> Array:
+    """``log q(xy) [N]`` of :func:`detector_draw` (per pixel^2; ``-inf`` off the map)."""
+    s = config.detector_stride
+    cell = map_cell_of(xy, s, shape)
+    lp = jnp.where(cell >= 0, log_map[jnp.maximum(cell, 0)], -jnp.inf)
+    return lp - 2.0 * jnp.log(jnp.float32(s))
+
+
 # ----------------------------------------------------------------------------- the filter
 
 
@@ -814,6 +995,12 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             background=bg,
         )
 
+    def target_depth(state: RGBDState) -> Array:
+        """Mean of the known cell depth templates (mm; 0 when none is known)."""
+        mu = state.depth_template
+        have = mu > 0
+        return jnp.sum(jnp.where(have, mu, 0.0)) / jnp.maximum(jnp.sum(have), 1)
+
     def target_gate(params: RGBDParams, state: RGBDState, target_z: Array) -> Array:
         """Depth tolerance (mm) of "a pixel of the target": wider the longer it was hidden,
         as it may have walked ``depth_speed`` mm per frame (up to ``search_drift_max``)."""
@@ -837,9 +1024,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         s = config.recovery_stride
         height, width = depth.shape
         hh, ww = height // s, width // s
-        mu = state.depth_template
-        have = mu > 0
-        target_z = jnp.sum(jnp.where(have, mu, 0.0)) / jnp.maximum(jnp.sum(have), 1)
+        target_z = target_depth(state)
         z = depth.astype(jnp.float32)
         gate = target_gate(params, state, target_z)
         ok = obs.foreground & (z > 0) & (jnp.abs(z - target_z) < gate)
@@ -872,6 +1057,77 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         redraw = (jax.random.uniform(k4, (n,)) < config.recovery_fraction) & searching
         return redraw, fresh
 
+    def detector_mixture(
+        key: Array,
+        params: RGBDParams,
+        state: RGBDState,
+        obs: _Observation,
+        depth: Array,
+        particles: Array,
+        scale: Array | None,
+        spread: Array,
+        extra: Array,
+    ) -> tuple[Array, Array]:
+        """Mixture proposal of the box centres; returns the particles and ``log p - log q [N]``.
+
+        ``particles`` were drawn from the motion model. A share ``detector_fraction``
+        of them moves its centre to a draw of the detector proposal
+        (:func:`detector_log_map`: boxes of the estimate's size full of foreground at
+        the target's depth, near the predicted centre), the rest keeps it. Each
+        particle's proposal is ``q = (1 - a) p_motion + a q_det`` given its ancestor;
+        the model's transition is ``p = (1 - f) p_motion + f N(mean, (fast_sigma h)^2)``
+        (a fast-motion component: a person near the camera can move half a box per
+        frame); the weight gets ``p / q`` (exact: both share the size and velocity
+        draws). Without any detection ``a = 0``.
+        """
+        s = config.detector_stride
+        height, width = depth.shape
+        shape = (height // s, width // s)
+        k_draw, k_mix = jax.random.split(key)
+        zero_tau = jnp.zeros_like(params.tau)
+        mean = propagate(
+            k_mix,
+            state.particles,
+            state.previous,
+            zero_tau,
+            params.motion,
+            model=config.model,
+            hierarchical=config.hierarchical,
+            scale=scale,
+        )[:, :2]
+        target_z = target_depth(state)
+        z = depth.astype(jnp.float32)
+        gate = target_gate(params, state, target_z) + params.depth_speed
+        pixels = obs.foreground & (z > 0) & (jnp.abs(z - target_z) < gate) & (target_z > 0)
+        w = jnp.exp(state.log_weights)
+        centre = w @ mean
+        sigma = params.fast_sigma * state.estimate[3] * spread
+        log_map, available, fit = detector_log_map(
+            config, params, pixels, state.estimate[2:4], centre, sigma
+        )
+        det_xy = detector_draw(k_draw, config, log_map, shape, n)
+        # Draw from the detector only when the motion prior's prediction misses: a box at
+        # the predicted centre holds less than detector_need of the best one's share.
+        # (A choice made from the data before drawing: the weights stay exact.)
+        # While the target is voted occluded the recovery search (and the spreading) take
+        # over: neither the detector nor the fast-motion component is used then.
+        active = state.occluded_frames == 0
+        alpha = jnp.where(
+            active & available & (fit < params.detector_need), config.detector_fraction, 0.0
+        )
+        use = jax.random.uniform(jax.random.fold_in(k_draw, 1), (n,)) < alpha
+        xy = jnp.where(use[:, None], det_xy, particles[:, :2])
+        lp_motion = motion_position_log_density(
+            config, params, state.particles, mean, xy, scale, extra
+        )
+        var_fast = (params.fast_sigma * state.particles[:, 5]) ** 2
+        lp_fast = _gauss2_log_density(xy - mean, var_fast, jnp.zeros_like(var_fast), var_fast)
+        f = jnp.where(active, params.fast_fraction, 0.0)
+        lp_model = jnp.logaddexp(_log_clip(1.0 - f) + lp_motion, _log_clip(f) + lp_fast)
+        lq_det = detector_log_density(config, log_map, shape, xy)
+        lq = jnp.logaddexp(_log_clip(1.0 - alpha) + lp_motion, _log_clip(alpha) + lq_det)
+        return particles.at[:, :2].set(xy), lp_model - lq
+
     def target_extent(
         params: RGBDParams, state: RGBDState, obs: _Observation, depth: Array, est: Array
     ) -> Array:
@@ -886,9 +1142,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         the estimate's area (about 0 when the target is hidden).
         """
         height, width = depth.shape
-        mu = state.depth_template
-        have = mu > 0
-        target_z = jnp.sum(jnp.where(have, mu, 0.0)) / jnp.maximum(jnp.sum(have), 1)
+        target_z = target_depth(state)
         z = depth.astype(jnp.float32)
         gate = target_gate(params, state, target_z)
         # Pixels without depth are left out: at depth edges and on dark hair they
@@ -922,6 +1176,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
     ) -> tuple[RGBDState, RGBDInfo]:
         height, width = frame.colour.shape[:2]
         k_prop, k_spread, k_flag, k_res, k_rec = jax.random.split(key, 5)
+        k_det = jax.random.fold_in(key, 6)
         obs = _observe(config, params, frame, state.background)
         scale = None if config.tau_height is None else state.particles[:, 5] / config.tau_height
         particles = propagate(
@@ -949,11 +1204,22 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             hidden = state.occluded_frames > 0
             keep = jnp.concatenate([state.particles[:, 4:6], jnp.zeros((n, 2))], axis=-1)
             particles = particles.at[:, 4:8].set(jnp.where(hidden, keep, particles[:, 4:8]))
+        else:
+            spread = jnp.float32(1.0)
+            extra = jnp.float32(0.0)
+        # log p(x | ancestor) - log q(x | ancestor, y) of every particle's draw.
+        log_proposal = jnp.zeros((n,), jnp.float32)
+        if config.detector_fraction > 0:
+            particles, log_proposal = detector_mixture(
+                k_det, params, state, obs, frame.depth, particles, scale, spread, extra
+            )
         flags_prev = state.flags
         if config.occlusion and config.recovery_fraction > 0:
             redraw, fresh = recovery_draw(k_rec, params, state, obs, frame.depth)
             particles = jnp.where(redraw[:, None], fresh, particles)
             flags_prev = jnp.where(redraw, 0, flags_prev)
+            # The recovery draw is a search heuristic, weighted by its likelihood alone.
+            log_proposal = jnp.where(redraw, 0.0, log_proposal)
         particles = clamp(particles, width, height)
 
         boxes_xywh = _to_xywh(particles)
@@ -1004,6 +1270,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             p_cell = jnp.zeros((n, c), jnp.float32)
         if config.aspect_prior:
             log_lik = log_lik + aspect_log_prior(particles, params.aspect_mean, params.aspect_sigma)
+        log_lik = log_lik + log_proposal
         lw, invalid, ess, log_evidence = rs.reweight(state.log_weights, log_lik)
         w = jnp.exp(lw)
         est = _to_xywh(w @ particles)

@@ -28,6 +28,13 @@ w, h)`` top-left float pixels; depth is ``uint16`` millimetres, 0 = missing.
   ratio clipped to ``[eps, 1 - eps]`` (a ratio of exactly 0 or 1 would give an
   infinite log-density for shapes below or above 1).
 
+Coarse maps (the data-driven proposal of ``cpf_jax.rgbd``): :func:`coarse_counts`
+sums a mask over ``s x s`` blocks (``[H // s, W // s]``; the last ``H % s`` rows
+and ``W % s`` columns are dropped), :func:`window_sums` sums such a map over a
+``(2 ry + 1) x (2 rx + 1)`` window centred on every cell (clipped at the map's
+edges; the radii may be traced values), with a summed-area table, and
+:func:`map_cell_of` is the flat cell index of a pixel position (-1 outside).
+
 Everything is pure, static-shaped and works under ``jit`` and ``vmap``; the
 bin layout ``(n_bins, z_min, z_max)`` is static.
 """
@@ -52,6 +59,9 @@ __all__ = [
     "histogram_quantile",
     "histogram_fraction_below",
     "beta_log_density",
+    "coarse_counts",
+    "window_sums",
+    "map_cell_of",
 ]
 
 
@@ -175,3 +185,44 @@ def beta_log_density(ratio: Array, a: Array, b: Array, eps: float = 1e-3) -> Arr
     """``log Beta(r; a, b)`` with ``r`` clipped to ``[eps, 1 - eps]`` (paper eq. 2, normalised)."""
     r = jnp.clip(jnp.asarray(ratio, jnp.float32), eps, 1.0 - eps)
     return (a - 1.0) * jnp.log(r) + (b - 1.0) * jnp.log1p(-r) - betaln(a, b)
+
+
+def coarse_counts(mask: Array, stride: int) -> Array:
+    """``[H, W]`` mask -> ``[H // s, W // s] float32`` count of True pixels per ``s x s`` block."""
+    m = jnp.asarray(mask).astype(jnp.float32)
+    hh, ww = m.shape[0] // stride, m.shape[1] // stride
+    return m[: hh * stride, : ww * stride].reshape(hh, stride, ww, stride).sum((1, 3))
+
+
+def window_sums(grid: Array, ry: Array, rx: Array) -> Array:
+    """``[h, w]`` map -> ``[h, w]`` sums over the ``(2 ry + 1) x (2 rx + 1)`` window at each cell.
+
+    ``ry``, ``rx``: non-negative integer radii (scalars, may be traced). The
+    window is clipped at the map's edges (cells outside count as 0).
+    """
+    g = jnp.asarray(grid, jnp.float32)
+    h, w = g.shape
+    sat = jnp.pad(jnp.cumsum(jnp.cumsum(g, 0), 1), ((1, 0), (1, 0)))  # [h + 1, w + 1]
+    ry = jnp.maximum(jnp.asarray(ry, jnp.int32), 0)
+    rx = jnp.maximum(jnp.asarray(rx, jnp.int32), 0)
+    i = jnp.arange(h)
+    j = jnp.arange(w)
+    y0 = jnp.clip(i - ry, 0, h)[:, None]
+    y1 = jnp.clip(i + ry + 1, 0, h)[:, None]
+    x0 = jnp.clip(j - rx, 0, w)[None]
+    x1 = jnp.clip(j + rx + 1, 0, w)[None]
+    return sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0]
+
+
+def map_cell_of(xy: Array, stride: int, shape: tuple[int, int]) -> Array:
+    """Flat index ``[...] int32`` of the ``stride`` block holding pixel position ``xy [..., 2]``.
+
+    ``shape = (h, w)`` of the coarse map; ``-1`` for positions outside it.
+    """
+    p = jnp.asarray(xy, jnp.float32)
+    col = jnp.floor(p[..., 0] / stride)
+    row = jnp.floor(p[..., 1] / stride)
+    h, w = shape
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    idx = (jnp.clip(row, 0, h - 1) * w + jnp.clip(col, 0, w - 1)).astype(jnp.int32)
+    return jnp.where(inside, idx, -1)
