@@ -430,11 +430,12 @@ def build_colour_filter(config: ColourConfig) -> Filter:
     resampler = rs.SCHEMES[config.resampler]
 
     def clamp(particles: Array, width: int, height: int) -> Array:
-        w = jnp.clip(particles[:, 4], config.min_size, width)
-        h = jnp.clip(particles[:, 5], config.min_size, height)
-        cx = jnp.clip(particles[:, 0], 0.0, width)
-        cy = jnp.clip(particles[:, 1], 0.0, height)
-        return particles.at[:, 0].set(cx).at[:, 1].set(cy).at[:, 4].set(w).at[:, 5].set(h)
+        # Centres inside the frame, sizes in [min_size, frame size], velocities free:
+        # one clip with per-column bounds (column updates were four scatters).
+        inf, m = jnp.inf, config.min_size
+        lo = jnp.array([0.0, 0.0, -inf, -inf, m, m, -inf, -inf], jnp.float32)
+        hi = jnp.array([width, height, inf, inf, width, height, inf, inf], jnp.float32)
+        return jnp.clip(particles, lo, hi)
 
     def contain(
         particles: Array, log_weights: Array, lost: Array, width: int, height: int
