@@ -13,7 +13,8 @@ Usage::
 One frame (``step``):
 
 1. propagate every particle with the motion model (``cpf_jax.dynamics``), its
-   noise scaled by the particle's height / ``config.tau_height``;
+   noise scaled by the particle's height / ``config.tau_height`` and drawn by
+   ``config.rng`` (default: the counter hash of ``kernels.fastrand``);
 2. keep sizes in ``[min_size, frame size]`` and centres inside the frame
    (and, with a window and ``contain``, the boxes inside the histogram window
    placed on the cloud's mean);
@@ -22,7 +23,9 @@ One frame (``step``):
    contrast sums of its box and of a ring around it from a two-channel integer
    summed-area table of the whole frame (they are linear in the counts);
 4. the log-likelihood (below);
-5. estimate (weighted mean, MAP or robust mean), ESS, lost flag;
+5. estimate (weighted mean, MAP or robust mean), ESS, lost flag; the
+   estimate's stripe histograms come from the same integral table
+   (``rect_reduce(then=...)``, exact);
 6. optional slow template update from the estimate's histogram;
 7. resampling when ``ESS < ess_threshold * N`` (``ess_threshold = 1``: every
    frame, the SIR filter of thesis 2.1).
