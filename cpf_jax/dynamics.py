@@ -77,6 +77,7 @@ __all__ = [
     "MODELS",
     "RNGS",
     "MotionParams",
+    "guide_frame",
     "propagate",
 ]
 
@@ -158,17 +159,26 @@ def _ar2(particles: Array, previous: Array, noise: Array) -> Array:
     return jnp.concatenate([pos, size], axis=-1) + noise
 
 
-def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionParams, uniform):
-    """Replace the position / size-velocity noise of guided particles (see module docstring)."""
-    n = particles.shape[0]
-    vx, vy = particles[:, 2], particles[:, 3]
+def guide_frame(vx: Array, vy: Array, motion: MotionParams) -> tuple[Array, Array, Array]:
+    """Unit motion direction ``(ex, ey)`` and the guided proposal's stretch along it.
+
+    Safe direction: a stationary particle gets an arbitrary (x-axis) frame, where
+    the stretch is 1 anyway, so the guided noise is isotropic there. Shared by
+    ``propagate`` and the closed-form proposal density of ``cpf_jax.rgbd``.
+    """
     speed = jnp.sqrt(vx * vx + vy * vy)
-    # Safe direction: a stationary particle gets an arbitrary (x-axis) frame,
-    # where the stretch is 1 anyway, so the noise is isotropic.
     safe = speed > 1e-6
     ex = jnp.where(safe, vx / jnp.where(safe, speed, 1.0), 1.0)
     ey = jnp.where(safe, vy / jnp.where(safe, speed, 1.0), 0.0)
     stretch = 1.0 + motion.guide_gain * speed / (speed + motion.guide_speed)
+    return ex, ey, stretch
+
+
+def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionParams, uniform):
+    """Replace the position / size-velocity noise of guided particles (see module docstring)."""
+    n = particles.shape[0]
+    vx, vy = particles[:, 2], particles[:, 3]
+    ex, ey, stretch = guide_frame(vx, vy, motion)
     # The noise is already scaled; stretch it along the motion direction.
     along = noise[:, 0] * stretch
     across = noise[:, 1] / stretch

@@ -134,7 +134,14 @@ from cpf_jax.colour import (
     default_colour_params,
     n_bins_of,
 )
-from cpf_jax.dynamics import DEFAULT_TAU, MODELS, MotionParams, default_motion_params, propagate
+from cpf_jax.dynamics import (
+    DEFAULT_TAU,
+    MODELS,
+    MotionParams,
+    default_motion_params,
+    guide_frame,
+    propagate,
+)
 from cpf_jax.kernels import boxes as box_ops
 from cpf_jax.kernels import resample as rs
 from cpf_jax.kernels.background import Background, foreground_mask, update_background
@@ -815,12 +822,7 @@ def motion_position_log_density(
     if not (config.hierarchical and config.model in ("ar1", "ar1_fixed")):
         return plain
     m = params.motion
-    vx, vy = ancestors[:, 2], ancestors[:, 3]
-    speed = jnp.sqrt(vx * vx + vy * vy)
-    safe = speed > 1e-6
-    ex = jnp.where(safe, vx / jnp.where(safe, speed, 1.0), 1.0)
-    ey = jnp.where(safe, vy / jnp.where(safe, speed, 1.0), 0.0)
-    stretch = 1.0 + m.guide_gain * speed / (speed + m.guide_speed)
+    ex, ey, stretch = guide_frame(ancestors[:, 2], ancestors[:, 3], m)
     va, vc = (sx * stretch) ** 2, (sy / stretch) ** 2  # along e, across (e_perp = (-ey, ex))
     cxx = va * ex * ex + vc * ey * ey + e2 * sx**2
     cyy = va * ey * ey + vc * ex * ex + e2 * sy**2
