@@ -10,9 +10,9 @@ are a hash of the element's index:
     bits[i] = pcg(pcg(i ^ s0) + s1)
 
 with ``pcg`` the PCG-RXS-M-XS output permutation applied to one LCG step
-(Jarzynski and Olano, "Hash Functions for GPU Rendering", JCGT 2020, who
-found it the best quality-per-cost 32-bit hash; it passes TestU01 BigCrush as
-a 1D hash there). Every stage is a bijection of 32-bit words, so the
+(the "pcg" hash of Jarzynski and Olano, "Hash Functions for GPU Rendering",
+JCGT 2020, which they recommend for its quality per cost; the statistical
+checks made here are in the tests named below). Every stage is a bijection of 32-bit words, so the
 ``2**32`` counters of one key give distinct words (no collisions within a
 draw). The same operations vectorise on CPU and GPU: about 3x faster than
 ``jax.random.normal`` for the draw above, including the ``erf_inv``
@@ -60,8 +60,9 @@ def _odd_fraction(b: Array) -> Array:
 
 
 def uniform(key: Array, shape: tuple[int, ...], minval: float = 0.0, maxval: float = 1.0) -> Array:
-    """Float32 uniforms on ``(minval, maxval)``: ``(2k + 1) / 2**24`` for a 23-bit ``k``
-    (exact, endpoints excluded)."""
+    """Float32 uniforms on ``(minval, maxval)``: ``minval + (maxval - minval) u`` with
+    ``u = (2k + 1) / 2**24`` for a 23-bit ``k`` (``u`` is exact and never 0 or 1; after
+    scaling, float rounding can reach an endpoint of a wide or offset interval)."""
     u = _odd_fraction(bits(key, shape)) * jnp.float32(2.0**-24)
     return minval + (maxval - minval) * u
 
