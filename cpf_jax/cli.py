@@ -61,6 +61,19 @@ def parse_bins(text: str) -> tuple[int, ...]:
     return vals
 
 
+def parse_layout(text: str) -> tuple[int, int] | None:
+    """``"RxC"`` (rows x columns of the layout term's grid) or ``"off"`` -> tuple / None."""
+    if text.lower() == "off":
+        return None
+    try:
+        vals = tuple(int(v) for v in text.lower().split("x"))
+    except ValueError:
+        vals = ()
+    if len(vals) != 2 or not all(1 <= v <= 64 for v in vals):
+        raise UsageError(f"--layout expects RxC (1..64 each) such as 12x3, or off; got {text!r}")
+    return vals
+
+
 def check_box(box: np.ndarray, size: tuple[int, int], where: str) -> None:
     """Reject boxes that cannot start a track: non-positive size or no overlap with the frame."""
     w, h = size
@@ -146,6 +159,17 @@ def build_parser() -> argparse.ArgumentParser:
         "--bins", default=None, help="hue x saturation [x value] bins: 8x8x8 (default) or 8x8"
     )
     p.add_argument("--template-update", action="store_true", help="slowly adapt the template")
+    p.add_argument(
+        "--contrast",
+        choices=("linear", "mixture"),
+        default=None,
+        help="--model rgb: per-bin weights of the centre-surround term (default linear)",
+    )
+    p.add_argument(
+        "--layout",
+        default=None,
+        help="--model rgb: luminance layout term on a RxC grid, e.g. 12x3 (default off)",
+    )
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
@@ -224,6 +248,13 @@ def _run(args: argparse.Namespace) -> int:
     config_kw = {}
     if args.bins is not None:
         config_kw["bins"] = parse_bins(args.bins)
+    colour_kw = {}
+    if args.contrast is not None:
+        colour_kw["contrast"] = args.contrast
+    if args.layout is not None:
+        colour_kw["layout"] = parse_layout(args.layout)
+    if colour_kw and args.model != "rgb":
+        raise UsageError(f"--contrast and --layout apply to --model rgb, not {args.model!r}")
     frame_hw = (source.size[1], source.size[0])
     background = None
     if args.model == "rgb":
@@ -235,6 +266,7 @@ def _run(args: argparse.Namespace) -> int:
             resampler=args.resampler,
             template_update=args.template_update,
             **config_kw,
+            **colour_kw,
         ).with_window((float(box[2]), float(box[3])), frame_hw)
         params = default_colour_params()
         if args.sigma is not None:

@@ -14,6 +14,9 @@ Tables:
 * ``sigma_sweep``: likelihood width sigma at N = 100 (why sigma = 1 is too flat).
 * ``likelihood_ablation``: the thesis's likelihood (one H-S histogram, no
   contrast term) vs ours at N = 100.
+* ``likelihood_terms``: the optional terms (``ColourConfig.contrast = "mixture"``,
+  ``ColourConfig.layout``) against the default at N = 100: walking mean and
+  minimum, and Crossing success rate / AUC.
 * ``extra_scenarios``: the distractor and light-switch scenes at N = 100.
 * ``crossing``: real OTB Crossing (../shared/data/otb/Crossing), if present.
 
@@ -168,6 +171,19 @@ def markdown(res: dict) -> str:
     table("Likelihood width sigma, N = 100", res["sigma_sweep"])
     table("Likelihood ablation, N = 100", res["likelihood_ablation"])
     table("Other scenarios, N = 100", res["extra_scenarios"])
+    lines += [
+        "## Optional likelihood terms, N = 100",
+        "",
+        "| variant | walking mean | walking min | Crossing SR | Crossing AUC |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for label, r in res["likelihood_terms"].items():
+        c = r.get("crossing") or {}
+        lines.append(
+            f"| {label} | {r['walking_mean']:.1f} | {r['walking_min']:.1f} | "
+            f"{c.get('success_rate', float('nan')):.1f} | {c.get('auc', float('nan')):.1f} |"
+        )
+    lines.append("")
     if res.get("crossing"):
         c = res["crossing"]
         lines += [
@@ -269,8 +285,33 @@ def main(argv=None) -> dict:
     print(f"ablation: {res['likelihood_ablation']}", flush=True)
 
     res["extra_scenarios"] = mean_over(EXTRA, seeds, keys, n100, params)[1]
-    res["crossing"] = crossing(100, 1 if args.quick else 5, base, params)
+    crossing_keys = 1 if args.quick else 5
+    res["crossing"] = crossing(100, crossing_keys, base, params)
     print(f"crossing: {res['crossing']}", flush=True)
+
+    terms = {
+        "default": (base, params),
+        "layout 12x3": (dataclasses.replace(base, layout=(12, 3)), params),
+        "mixture contrast": (dataclasses.replace(base, contrast="mixture"), params),
+        "mixture + layout 12x3 (contrast_weight 5, layout_weight 20)": (
+            dataclasses.replace(base, contrast="mixture", layout=(12, 3)),
+            params._replace(contrast_weight=jnp.float32(5.0), layout_weight=jnp.float32(20.0)),
+        ),
+    }
+    res["likelihood_terms"] = {}
+    for label, (cfg, p) in terms.items():
+        if label == "default":
+            per, cross = per100, res["crossing"]
+        else:
+            per = mean_over(WALKING, seeds, keys, dataclasses.replace(cfg, n_particles=100), p)[1]
+            cross = crossing(100, crossing_keys, cfg, p)
+        res["likelihood_terms"][label] = {
+            "walking_mean": float(np.mean(list(per.values()))),
+            "walking_min": float(min(per.values())),
+            "per_scenario": per,
+            "crossing": cross,
+        }
+        print(f"terms {label}: {res['likelihood_terms'][label]}", flush=True)
 
     res["meta"] = {
         "date": datetime.datetime.now().isoformat(timespec="seconds"),

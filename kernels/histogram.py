@@ -112,6 +112,7 @@ __all__ = [
     "integral_histogram",
     "integral_image",
     "rect_sums",
+    "grid_sums",
     "window_origin",
     "window_covers",
     "suggest_window",
@@ -221,6 +222,39 @@ def rect_sums(table: Array, rects: Array) -> Array:
         return flat.at[idx[k]].get(mode="promise_in_bounds")
 
     return row(0) - row(1) - row(2) + row(3)
+
+
+def grid_sums(table: Array, boxes: Array, rows: int, cols: int) -> Array:
+    """Sums ``[..., rows, cols, c]`` over a ``rows x cols`` grid of equal cells of each
+    ``(x, y, w, h)`` box in ``boxes [..., 4]``, from an ``integral_image`` table
+    ``[h+1, w+1, c]``, and the cells' pixel counts ``[..., rows, cols]`` (as a second
+    output).
+
+    Cell edges are rounded like ``boxes.xywh_to_rect`` (``floor(v + 0.5)``) and
+    clipped to the frame, so the cells partition the box's clipped rect exactly;
+    a cell outside the frame is empty (sum 0, count 0). The ``(rows + 1) x
+    (cols + 1)`` lattice corners are gathered once and shared by neighbouring
+    cells (``4 rows cols`` corner reads per box would be 2-3x more).
+    """
+    height, width = table.shape[0] - 1, table.shape[1] - 1
+    b = jnp.asarray(boxes, jnp.float32)
+    fy = jnp.arange(rows + 1, dtype=jnp.float32) / rows
+    fx = jnp.arange(cols + 1, dtype=jnp.float32) / cols
+    ys = jnp.floor(b[..., 1:2] + b[..., 3:4] * fy + 0.5)  # [..., rows + 1]
+    xs = jnp.floor(b[..., 0:1] + b[..., 2:3] * fx + 0.5)  # [..., cols + 1]
+    ys = jnp.clip(ys, 0, height).astype(jnp.int32)
+    xs = jnp.clip(xs, 0, width).astype(jnp.int32)
+    idx = lax.optimization_barrier(ys[..., :, None] * (width + 1) + xs[..., None, :])
+    flat = table.reshape(-1, table.shape[-1])
+    corners = flat.at[idx].get(mode="promise_in_bounds")  # [..., rows + 1, cols + 1, c]
+    sums = (
+        corners[..., 1:, 1:, :]
+        - corners[..., :-1, 1:, :]
+        - corners[..., 1:, :-1, :]
+        + corners[..., :-1, :-1, :]
+    )
+    counts = (ys[..., 1:] - ys[..., :-1])[..., :, None] * (xs[..., 1:] - xs[..., :-1])[..., None, :]
+    return sums, counts
 
 
 # ----------------------------------------------------------------------------- window placement

@@ -68,6 +68,15 @@ def test_init_override_and_max_frames(folder, tmp_path):
     np.testing.assert_allclose(res["boxes"][0], [100, 80, 60, 190])
 
 
+def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
+    out = tmp_path / "t.csv"
+    argv = [str(folder), "--init", "100,80,60,190", "--max-frames", "3", "--out", str(out)]
+    argv += ["--particles", "64", "--no-progress", "--contrast", "mixture", "--layout", "6x2"]
+    assert main(argv) == 0
+    res = read_results(out)
+    assert len(res["frame"]) == 3 and np.isfinite(res["boxes"]).all()
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [
@@ -76,6 +85,9 @@ def test_init_override_and_max_frames(folder, tmp_path):
         (["{folder}", "--init", "1,2,3"], "--init"),
         (["{folder}", "--particles", "0"], "--particles"),
         (["{folder}", "--bins", "8by8"], "--bins"),
+        (["{folder}", "--layout", "12"], "--layout"),
+        (["{folder}", "--layout", "0x3"], "--layout"),
+        (["{folder}", "--model", "rgbd", "--contrast", "mixture"], "--model rgb"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(folder, capsys, args, needle):

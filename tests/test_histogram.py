@@ -451,6 +451,52 @@ def test_integral_image_and_rect_sums_match_numpy():
     np.testing.assert_allclose(np.asarray(H.rect_sums(table, rects)), expected, rtol=1e-6)
 
 
+def _grid_reference(values, box, rows, cols):
+    """Plain-loop grid sums and pixel counts of one (x, y, w, h) box."""
+    h, w = values.shape[:2]
+    x, y, bw, bh = (float(v) for v in box)
+    ys = [min(max(int(np.floor(y + bh * i / rows + 0.5)), 0), h) for i in range(rows + 1)]
+    xs = [min(max(int(np.floor(x + bw * j / cols + 0.5)), 0), w) for j in range(cols + 1)]
+    sums = np.zeros((rows, cols, values.shape[2]), values.dtype)
+    counts = np.zeros((rows, cols), np.int32)
+    for i in range(rows):
+        for j in range(cols):
+            cell = values[ys[i] : ys[i + 1], xs[j] : xs[j + 1]]
+            sums[i, j] = cell.reshape(-1, values.shape[2]).sum(0)
+            counts[i, j] = cell.shape[0] * cell.shape[1]
+    return sums, counts
+
+
+@pytest.mark.parametrize("rows,cols", [(1, 1), (3, 2), (12, 3)])
+def test_grid_sums_match_loop(rows, cols):
+    rng = np.random.default_rng(rows * 10 + cols)
+    values = rng.integers(0, 256, (41, 57, 2)).astype(np.int32)
+    boxes = np.array(
+        [
+            [3.2, 4.7, 20.0, 30.3],  # inside, fractional corners
+            [-6.0, -3.0, 17.0, 21.0],  # partly outside (top-left)
+            [45.5, 30.0, 25.0, 22.0],  # partly outside (bottom-right)
+            [80.0, 50.0, 10.0, 10.0],  # wholly outside: empty cells
+            [10.0, 10.0, 2.0, 2.0],  # smaller than the grid: some cells empty
+        ],
+        np.float32,
+    )
+    expected = [_grid_reference(values, b, rows, cols) for b in boxes]
+    exp_sums = np.stack([e[0] for e in expected])
+    exp_counts = np.stack([e[1] for e in expected])
+    f = jax.jit(lambda v, b: H.grid_sums(H.integral_image(v), b, rows, cols))
+    sums, counts = f(values, boxes)
+    np.testing.assert_array_equal(np.asarray(sums), exp_sums)
+    np.testing.assert_array_equal(np.asarray(counts), exp_counts)
+    # the cells partition the clipped rect: their sums add up to rect_sums
+    table = H.integral_image(values)
+    whole = H.rect_sums(table, B.xywh_to_rect(boxes))
+    np.testing.assert_array_equal(np.asarray(sums.sum((1, 2))), np.asarray(whole))
+    # vmap over frames
+    vs, _ = jax.vmap(f, in_axes=(0, None))(np.stack([values, 2 * values]), boxes)
+    np.testing.assert_array_equal(np.asarray(vs[1]), 2 * exp_sums)
+
+
 # ----------------------------------------------------------------------------- distances
 
 

@@ -1,0 +1,190 @@
+"""Optional likelihood terms of the colour layer: "mixture" contrast weights and the
+luminance layout term, against NumPy references under jit and vmap, and in the filter."""
+
+from __future__ import annotations
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cpf_jax.colour import (
+    COLOUR_BINS,
+    MIXTURE_MAX,
+    ColourConfig,
+    bin_index,
+    build_colour_filter,
+    contrast_weights,
+    default_colour_params,
+    layout_vectors,
+    luminance,
+    mixture_weights,
+    n_bins_of,
+    track_boxes,
+)
+from cpf_jax.kernels.boxes import iou
+from cpf_jax.kernels.histogram import integral_image
+from cpf_jax.types import Frame
+
+H, W = 120, 160
+
+
+def _frame(seed: int = 0, x: int = 60) -> tuple[Frame, np.ndarray]:
+    """Red shirt over blue trousers (20 x 50 px) on a noisy grey-green floor that also
+    fills the gap between the legs (the box is 30 px wide: a third of it is floor)."""
+    rng = np.random.default_rng(seed)
+    img = np.empty((H, W, 3), np.uint8)
+    img[..., 0] = 90 + rng.integers(0, 20, (H, W))
+    img[..., 1] = 110 + rng.integers(0, 20, (H, W))
+    img[..., 2] = 90 + rng.integers(0, 20, (H, W))
+    img[35:60, x : x + 30] = (200, 30, 40)  # shirt
+    img[60:85, x : x + 10] = (30, 40, 150)  # left leg
+    img[60:85, x + 20 : x + 30] = (30, 40, 150)  # right leg
+    frame = Frame(jnp.asarray(img), jnp.zeros((H, W), jnp.uint16))
+    return frame, np.array([x, 35, 30, 50], np.float32)
+
+
+def _mixture_reference(img: np.ndarray, box, margin: float, fill: float) -> np.ndarray:
+    """Plain NumPy: bin counts in the box and in the ring by slicing, then the LLR."""
+    idx = np.asarray(bin_index(jnp.asarray(img), COLOUR_BINS))
+    n = n_bins_of(COLOUR_BINS)
+    x, y, w, h = box
+
+    def counts(x0, y0, x1, y1):
+        x0, y0 = max(int(np.floor(x0 + 0.5)), 0), max(int(np.floor(y0 + 0.5)), 0)
+        x1, y1 = min(int(np.floor(x1 + 0.5)), W), min(int(np.floor(y1 + 0.5)), H)
+        return np.bincount(idx[y0:y1, x0:x1].ravel(), minlength=n).astype(np.float64)
+
+    inside = counts(x, y, x + w, y + h)
+    grown = counts(x - margin * w, y - margin * h, x + w + margin * w, y + h + margin * h)
+    ring = grown - inside
+    p_bg = ring + 1e-3 * max(ring.sum(), 1.0) / n + 1e-6
+    p_bg /= p_bg.sum()
+    p_obj = np.maximum(inside / inside.sum() - (1 - fill) * p_bg, 0.0) + 1e-6
+    p_obj /= p_obj.sum()
+    return np.clip(np.log((1 - fill) + fill * p_obj / p_bg), -MIXTURE_MAX, MIXTURE_MAX)
+
+
+@pytest.mark.parametrize("fill", [0.5, 0.7, 0.9])
+def test_mixture_weights_match_numpy(fill):
+    frame, box = _frame()
+    got = jax.jit(lambda f, b, r: mixture_weights(f, b, COLOUR_BINS, 0.5, r))(frame, box, fill)
+    want = _mixture_reference(np.asarray(frame.colour), box, 0.5, fill)
+    np.testing.assert_allclose(np.asarray(got), want, atol=2e-4)
+
+
+def test_mixture_weights_vmap_over_fill_and_boxes():
+    frame, box = _frame()
+    fills = jnp.array([0.6, 0.8])
+    boxes = jnp.stack([box, box + np.array([-20, 10, 0, 0], np.float32)])
+    got = jax.vmap(lambda b, r: mixture_weights(frame, b, COLOUR_BINS, 0.5, r))(boxes, fills)
+    for k in range(2):
+        want = _mixture_reference(
+            np.asarray(frame.colour), np.asarray(boxes[k]), 0.5, float(fills[k])
+        )
+        np.testing.assert_allclose(np.asarray(got[k]), want, atol=2e-4)
+
+
+def test_mixture_weights_penalise_background_inside_the_initial_box():
+    """The floor fills a third of the box: the linear weights barely count it, the mixture
+    weights count it as background (about log(1 - fill)), and person colours positive."""
+    frame, box = _frame()
+    idx = np.asarray(bin_index(frame.colour, COLOUR_BINS))
+    shirt, floor = idx[40, 65], idx[5, 5]
+    mix = np.asarray(mixture_weights(frame, box, fill=0.7))
+    lin = np.asarray(contrast_weights(frame, box, threshold=0.3))
+    assert mix[shirt] > 1.0 and mix[floor] < -0.5, (mix[shirt], mix[floor])
+    assert lin[floor] > -0.3 + 0.05  # near-neutral: the floor is also in the box
+    # so a box grown over the floor loses under the mixture weights
+
+    def counts(x0, y0, x1, y1):
+        return np.bincount(idx[y0:y1, x0:x1].ravel(), minlength=mix.shape[0])
+
+    tight, wide = counts(60, 35, 90, 85), counts(50, 30, 100, 95)
+    assert tight @ mix > wide @ mix
+
+
+def test_luminance_matches_opencv():
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (37, 41, 3), dtype=np.uint8)
+    want = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.int32)
+    got = np.asarray(jax.jit(luminance)(jnp.asarray(img)))
+    assert np.abs(got - want).max() <= 1  # OpenCV rounds in fixed point
+
+
+def _layout_reference(lum: np.ndarray, box, rows: int, cols: int) -> np.ndarray:
+    h, w = lum.shape
+    x, y, bw, bh = box
+    ys = [min(max(int(np.floor(y + bh * i / rows + 0.5)), 0), h) for i in range(rows + 1)]
+    xs = [min(max(int(np.floor(x + bw * j / cols + 0.5)), 0), w) for j in range(cols + 1)]
+    means = np.zeros((rows, cols))
+    for i in range(rows):
+        for j in range(cols):
+            cell = lum[ys[i] : ys[i + 1], xs[j] : xs[j + 1]]
+            means[i, j] = cell.mean() if cell.size else 0.0
+    v = means.ravel() - means.mean()
+    return v / max(np.linalg.norm(v), 1e-3)
+
+
+@pytest.mark.parametrize("grid", [(12, 3), (4, 1), (5, 4)])
+def test_layout_vectors_match_numpy_under_jit_and_vmap(grid):
+    frame, box = _frame()
+    lum = np.asarray(luminance(frame.colour))
+    boxes = np.array(
+        [box, [3.3, 7.6, 40.2, 70.9], [-10, -5, 40, 50], [150, 110, 30, 30]], np.float32
+    )
+    f = jax.jit(lambda c, b: layout_vectors(integral_image(luminance(c)[..., None]), b, grid))
+    got = np.asarray(f(frame.colour, boxes))
+    want = np.stack([_layout_reference(lum, b, *grid) for b in boxes])
+    np.testing.assert_allclose(got, want, atol=1e-4)
+    # unit norm (or zero for a box of uniform brightness), NCC with itself 1
+    np.testing.assert_allclose(got[0] @ got[0], 1.0, atol=1e-5)
+    # vmap over frames: a brightness gain and offset leaves the person's vector unchanged
+    # (up to the rounding of the darker image; the noise-only boxes are all rounding)
+    darker = (frame.colour.astype(jnp.int32) // 2 + 40).astype(jnp.uint8)
+    both = jax.vmap(f, in_axes=(0, None))(jnp.stack([frame.colour, darker]), boxes[:1])
+    np.testing.assert_allclose(np.asarray(both[0]), got[:1], atol=1e-5)
+    np.testing.assert_allclose(np.asarray(both[1]), got[:1], atol=0.03)
+
+
+def test_layout_tells_an_upside_down_box_apart():
+    frame, box = _frame()
+    table = integral_image(luminance(frame.colour)[..., None])
+    v = layout_vectors(table, jnp.asarray(box), (12, 3))
+    flipped = layout_vectors(
+        integral_image(luminance(frame.colour[::-1])[..., None]),
+        jnp.asarray([box[0], H - box[1] - box[3], box[2], box[3]]),
+        (12, 3),
+    )
+    assert float(v @ flipped) < 0.0
+
+
+def _moving(n: int) -> tuple[Frame, np.ndarray]:
+    frames, boxes = zip(*(_frame(seed=t, x=20 + 3 * t) for t in range(n)), strict=True)
+    colour = jnp.stack([f.colour for f in frames])
+    return Frame(colour, jnp.zeros(colour.shape[:3], jnp.uint16)), np.stack(boxes)
+
+
+@pytest.mark.parametrize(
+    "contrast,layout", [("mixture", None), ("linear", (12, 3)), ("mixture", (12, 3))]
+)
+def test_filter_tracks_with_the_optional_terms(contrast, layout):
+    """Stated threshold: IoU >= 0.5 on >= 95 % of 30 frames, with the term switched on."""
+    frames, gt = _moving(30)
+    config = ColourConfig(n_particles=128, contrast=contrast, layout=layout)
+    params = default_colour_params()._replace(layout_rate=jnp.float32(0.05))
+    filt = build_colour_filter(config)
+    boxes = np.asarray(
+        jax.jit(lambda k: track_boxes(filt, params, k, frames, gt[0]))(jax.random.PRNGKey(0))
+    )
+    assert np.isfinite(boxes).all()
+    ious = np.asarray(iou(jnp.asarray(boxes), jnp.asarray(gt)))
+    assert (ious >= 0.5).mean() >= 0.95, ious.round(2)
+
+
+def test_config_rejects_bad_terms():
+    with pytest.raises(ValueError, match="contrast"):
+        ColourConfig(contrast="ratio")
+    with pytest.raises(ValueError, match="layout"):
+        ColourConfig(layout=(0, 3))
