@@ -384,3 +384,37 @@ def test_flags_beat_the_variants_without_them_on_the_toy_occlusion(toy):
         mota[v] = summarise(boxes, gt, vis, lost)["mota"]
     # Without flags the filters keep reporting a box while the person is hidden.
     assert mota["grid-occlusion"] >= max(mota["rgbd"], mota["grid"]) + 10, mota
+
+
+def test_depth_templates_follow_a_target_walking_away():
+    """A figure recedes 80 mm per frame (no occluder): the alpha-beta depth templates
+    learn the velocity and stay on the figure's depth (stated: velocity within 25 % of
+    80 mm/frame after 25 frames, templates within 3 %); without the velocity term
+    (``depth_velocity_rate = 0``) they lag behind by several times more."""
+    rng = np.random.default_rng(1)
+    n = 30
+    z_true = 1500.0 + 80.0 * np.arange(n)
+    frames = []
+    for t in range(n):
+        colour, depth, mask = _toy(10, rng, occluder=False)
+        depth = np.where(mask, (z_true[t] + rng.normal(0, 15, mask.shape)), depth)
+        frames.append((colour, depth.astype(np.uint16), mask))
+    fr = Frame(
+        jnp.asarray(np.stack([f[0] for f in frames])), jnp.asarray(np.stack([f[1] for f in frames]))
+    )
+    empty = [_toy(0, rng, person=False, occluder=False) for _ in range(5)]
+    bg = median_background(np.stack([e[0] for e in empty]), np.stack([e[1] for e in empty]))
+    cfg = _config("grid-occlusion")
+    filt = build_rgbd_filter(cfg)
+    params = default_rgbd_params(cfg)
+    box = jnp.asarray(_gt(frames[0][2]))
+    lags = {}
+    for rate in (0.2, 0.0):
+        p = params._replace(depth_velocity_rate=jnp.float32(rate))
+        state, _ = jax.jit(lambda k, p=p: track(filt, p, k, fr, box, bg))(jax.random.PRNGKey(0))
+        tpl = np.asarray(state.depth_template)
+        lags[rate] = float(np.max(np.abs(tpl - z_true[-1])))
+        if rate > 0:
+            assert abs(float(state.depth_velocity) - 80.0) < 20.0, float(state.depth_velocity)
+            assert lags[rate] < 0.03 * z_true[-1], tpl
+    assert lags[0.0] > 2.0 * lags[0.2], lags
