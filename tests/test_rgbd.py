@@ -425,3 +425,38 @@ def test_depth_templates_follow_a_target_walking_away():
             assert abs(float(state.depth_velocity) - 80.0) < 20.0, float(state.depth_velocity)
             assert lags[rate] < 0.03 * z_true[-1], tpl
     assert lags[0.0] > 2.0 * lags[0.2], lags
+
+
+def test_depth_templates_ignore_nearer_occluder_pixels():
+    # A cell 70 % covered by an occluder 550 mm nearer than the target: more than the
+    # occluder margin (400 mm), but within the aged jump gate (400 + 60 x 5 mm). The
+    # cell's median is the occluder's; the template must learn from the target's pixels
+    # only (depth decides), so it stays at the target's depth.
+    cfg = _config("grid-occlusion", detector_fraction=0.0, recovery_fraction=0.0)
+    filt = build_rgbd_filter(cfg)
+    params = default_rgbd_params(cfg)._replace(depth_velocity_rate=jnp.float32(0.0))
+    colour = np.full((H, W, 3), 100, np.uint8)
+    depth = np.full((H, W), Z_BG, np.uint16)
+    x, y, w, h = 40, 20, 40, 80
+    colour[y : y + h, x : x + w] = (200, 40, 40)
+    depth[y : y + h, x : x + w] = Z_PERSON
+    near = Z_PERSON - 550
+    depth[y : y + h, x : x + int(0.7 * w)] = near  # the left cells, and 40 % of the right ...
+    bg = median_background(
+        jnp.asarray(np.full((1, H, W, 3), 100, np.uint8)),
+        jnp.asarray(np.full((1, H, W), Z_BG, np.uint16)),
+    )
+    frame = Frame(jnp.asarray(colour), jnp.asarray(depth))
+    box = jnp.asarray([x, y, w, h], jnp.float32)
+    state = filt.init(params, jax.random.PRNGKey(0), frame, box, bg)
+    c = cfg.n_cells
+    state = state._replace(
+        depth_template=jnp.full((c,), float(Z_PERSON)),
+        depth_age=jnp.full((c,), 5.0),
+        vote=jnp.zeros((c,)),
+    )
+    new, _ = jax.jit(filt.step)(params, jax.random.PRNGKey(1), state, frame)
+    tmpl = np.asarray(new.depth_template)
+    # ... so that the two left cells (of a 2x2 grid) are all occluder where they are
+    # near, and the rest is target: no template may move towards the occluder's depth.
+    assert np.all(np.abs(tmpl - Z_PERSON) < 120), tmpl
