@@ -37,6 +37,14 @@ Every count is exact (``histogram.rect_reduce`` over ``[N, C, 4]`` cell
 rects); the median comes from a 64-bin log-depth histogram
 (``kernels.cells.histogram_quantile``, error below one bin, 5 %). The paper's
 exponent in eq. 4 is garbled; we read it as the thesis's Gaussian in ``d``.
+Each term has a floor (``beta_floor``, ``colour_floor``, ``depth_floor``): one
+implausible statistic costs a bounded amount. The Beta shapes are fitted on synthetic
+walkers, whose silhouettes fill about a third of their box; real people seen from
+the front or from above fill 60-90 % (the IST recording), where the unfloored per-cell
+Beta falls to about -29 for a full cell. ``beta_floor = -10`` (the Beta at a ratio of
+about 0.93) caps that; -6 also helped real people but cost the toy full-occlusion test
+of ``tests/test_rgbd.py`` its MOTA margin (occluder-filled cells must still look unlike
+a visible target).
 
 For an occluded cell (``z_i = 1``) eq. 1 gives a constant. We keep that constant
 (``log_occluded``) and add the depth-ordering rule the paper states in words
@@ -79,19 +87,23 @@ eq. 7, only in cells voted not occluded; occluded cells keep theirs (eq. 8).
 Data-driven proposal (``"rgbd"`` and the grid variants; ``detector_fraction``)
 -----------------------------------------------------------------------------
 A person near the camera moves half a box or more per frame, far beyond the motion
-noise. The transition model therefore has a fast-motion component,
-``p(c_t | x_{t-1}) = (1 - fast_fraction) p_motion + fast_fraction N(mean, (fast_sigma
-h)^2)`` on the box centre ``c_t``, and the centres are drawn from a mixture proposal
-(as the boosted particle filter, Okuma et al. 2004): with probability
-``detector_fraction`` from a "detector" -- a coarse map (``detector_stride``) of boxes
-of the estimate's size scored by their share of foreground at the target's depth
-(``detector_log_map``), near the prediction -- otherwise from the motion model. Sizes
-and velocities come from the motion model either way, so each particle's weight gets
-the exact ratio ``p(c_t | x_{t-1}) / ((1 - a) p_motion + a q_det)`` of the centre
-densities (``motion_position_log_density``, ``detector_log_density``). The detector is
-used (``a > 0``) only when the box at the predicted centre holds less than
-``detector_need`` of the best share near it, and neither it nor the fast component while
-the target is voted occluded (the spreading and the recovery search take over then).
+noise, and his box can change size by a fifth per frame (he walks towards or away from
+the camera, or more of him comes into view). The transition model therefore has a fast
+component, ``p(b_t | x_{t-1}) = (1 - fast_fraction) p_motion + fast_fraction N(c_t;
+mean, (fast_sigma h)^2) LN(w_t, h_t; predicted size, fast_scale^2)`` on the box ``b_t =
+(c_t, w_t, h_t)``, and the boxes are drawn from a mixture proposal (as the boosted
+particle filter, Okuma et al. 2004): with probability ``detector_fraction`` from a
+"detector" -- a coarse map (``detector_stride``) of boxes of a grid of sizes around the
+estimate's (``detector_scales``, ``detector_scale_step``) scored by their *tightness*
+around foreground at the target's depth (share inside x share missing from a ring
+around the box; ``detector_log_map``), near the prediction -- otherwise from the motion
+model. Velocities come from the motion model either way, so each particle's weight gets
+the exact ratio ``p(b_t | x_{t-1}) / ((1 - a) p_motion + a q_det)`` of the box densities
+(``motion_position_log_density``, ``motion_size_log_density``,
+``detector_log_density``). The detector is used (``a > 0``) only when the box at the
+predicted centre is less than ``detector_need`` as tight as the best one near it, and
+neither it nor the fast component while the target is voted occluded (the spreading and
+the recovery search take over then). Fixed-size motion models: centres only.
 
 Reported box (``info.report``, what metrics score). ``"rgbd"`` / ``"grid"``:
 the estimate (weighted mean). ``"grid-occlusion"``: the union of the cells
@@ -104,6 +116,17 @@ target's pixels (foreground within the target gate of the depth template) in and
 around the estimate; ``"grid-occlusion"`` also reports no box when those pixels
 cover less than ``min_coverage`` of the estimate (the target is hidden, whatever
 the votes say).
+
+Depth templates move: the target's depth velocity ``v`` (mm per frame) is tracked by an
+alpha-beta filter. Each step first predicts every known template by ``v``; after the
+update (gain ``depth_rate``) ``v`` is corrected by ``depth_velocity_rate`` times the mean
+innovation (median - prediction) of the updated cells, and fades by
+``depth_velocity_fade`` per frame in frames where no cell is updated (a walking person
+keeps walking while hidden). The cell medians that update the templates count only
+pixels not nearer than the predicted target depth by more than the occluder margin
+(depth decides: an occluder covering half a cell must not become its template). Without it a target walking away at 150-250 mm per
+frame (the IST recording, frames 52-62) leaves its templates and the target-depth gates
+behind.
 
 Depth templates age: ``depth_age`` counts the frames since a cell's template was
 last updated; the target may have moved ``depth_speed`` mm per frame since, so the
@@ -244,6 +267,11 @@ class RGBDConfig:
     # on a map of this stride (pixels).
     detector_fraction: float = 0.2
     detector_stride: int = 8
+    # The detector also proposes box sizes: the estimate's width x exp(i * step_w) and
+    # height x exp(j * step_h), |i| <= scales[0], |j| <= scales[1] (a geometric grid whose
+    # cells tile log-size; 0, 0: the estimate's size only, jittered within one step).
+    detector_scales: tuple[int, int] = (2, 3)
+    detector_scale_step: tuple[float, float] = (0.15, 0.12)
     colour: ColourConfig | None = None  # the "rgb" variant's colour filter (None: default)
     # Background pixels count as one extra colour bin: the histogram of the paper's
     # "preprocessed foreground RGB image" (background blacked out), so the colour term
@@ -285,6 +313,11 @@ class RGBDConfig:
             raise ValueError(f"detector_fraction must be in [0, 1), got {self.detector_fraction}")
         if self.detector_stride < 1:
             raise ValueError(f"detector_stride must be >= 1, got {self.detector_stride}")
+        if min(self.detector_scales) < 0 or min(self.detector_scale_step) <= 0:
+            raise ValueError(
+                "detector_scales must be >= 0 and detector_scale_step > 0, got "
+                f"{self.detector_scales}, {self.detector_scale_step}"
+            )
         if self.n_cells > 30:
             raise ValueError(f"at most 30 cells (flags are int32 bit masks), got {self.n_cells}")
         lo, hi = self.depth_range
@@ -343,6 +376,7 @@ class RGBDParams(NamedTuple):
     beta_a: Array  # [C] eq. 2 shapes per cell
     beta_b: Array  # [C]
     beta_weight: Array  # weight of the Beta terms (1: the paper)
+    beta_floor: Array  # lowest log-density of a cell's / the box's Beta term (robust)
     box_beta_a: Array  # Beta shapes of the whole box's (visible cells') foreground ratio
     box_beta_b: Array
     border_a: Array  # [8] Beta shapes of the border strips' ratios (inner t/b/l/r, outer t/b/l/r)
@@ -360,6 +394,8 @@ class RGBDParams(NamedTuple):
     template_rate: Array  # 1 - lambda of eq. 7 for colour templates
     template_gate: Array  # colour templates learn only from cells closer than this
     depth_rate: Array  # 1 - lambda of eq. 7 for depth templates
+    depth_velocity_rate: Array  # gain of the depth-velocity update (0: templates do not move)
+    depth_velocity_fade: Array  # share of the velocity lost per frame without depth update
     depth_speed: Array  # mm per frame a template's target may move while not updated
     spread_rate: Array  # extra position noise per occluded frame (x tau)
     spread_max: Array  # cap of the position-noise multiplier
@@ -372,6 +408,8 @@ class RGBDParams(NamedTuple):
     search_drift_max: Array  # mm, cap of the widening of the target gate while hidden
     fast_fraction: Array  # motion model: share of the fast-motion component ...
     fast_sigma: Array  # ... a Gaussian of this sd (fraction of the box height) around the mean
+    fast_scale: Array  # ... and log-normal sizes of this log-sd around the predicted size
+    detector_ring: Array  # detector: ring around a box (fraction of its size) that should be empty
     detector_min_ratio: Array  # detector: least share of target-depth foreground in a box,
     # relative to the best box near the prediction ...
     detector_floor: Array  # ... and absolute
@@ -397,6 +435,7 @@ PARAM_CONSTRAINTS = RGBDParams(
     beta_a="softplus",
     beta_b="softplus",
     beta_weight="softplus",
+    beta_floor="identity",
     box_beta_a="softplus",
     box_beta_b="softplus",
     border_a="softplus",
@@ -414,6 +453,8 @@ PARAM_CONSTRAINTS = RGBDParams(
     template_rate="sigmoid",
     template_gate="sigmoid",
     depth_rate="sigmoid",
+    depth_velocity_rate="sigmoid",
+    depth_velocity_fade="sigmoid",
     depth_speed="softplus",
     spread_rate="softplus",
     spread_max="softplus",
@@ -426,6 +467,8 @@ PARAM_CONSTRAINTS = RGBDParams(
     search_drift_max="softplus",
     fast_fraction="sigmoid",
     fast_sigma="softplus",
+    fast_scale="softplus",
+    detector_ring="softplus",
     detector_min_ratio="sigmoid",
     detector_floor="sigmoid",
     detector_need="sigmoid",
@@ -452,7 +495,11 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
     else:
         a, b = (BETA_FALLBACK[0],) * c, (BETA_FALLBACK[1],) * c
     return RGBDParams(
-        sigma_rgb=f(0.08),
+        # A view change of the same person (front / back, blur) moves a cell's histogram
+        # by d ~ 0.3; with 0.08 that alone costs 7 nats and most cells sat on the colour
+        # floor, so the colour term was a step (and beat eq. 1's occluded constant by
+        # chance). 0.2 makes d ~ 0.3 cost about 1 nat; synthetic occlusion MOTA holds.
+        sigma_rgb=f(0.2),
         colour_floor=f(-12.0),
         sigma_depth=f(100.0),
         sigma_depth_rel=f(0.05),
@@ -460,6 +507,7 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         beta_a=jnp.asarray(a, jnp.float32),
         beta_b=jnp.asarray(b, jnp.float32),
         beta_weight=f(1.0),
+        beta_floor=f(-10.0),
         box_beta_a=f(DEFAULT_BETA[1][0][0]),
         box_beta_b=f(DEFAULT_BETA[1][1][0]),
         border_a=jnp.asarray(DEFAULT_BORDER_BETA[0], jnp.float32),
@@ -477,6 +525,8 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         template_rate=f(0.02),
         template_gate=f(0.4),
         depth_rate=f(0.5),
+        depth_velocity_rate=f(0.2),
+        depth_velocity_fade=f(0.05),
         depth_speed=f(60.0),
         spread_rate=f(0.15),
         spread_max=f(3.0),
@@ -489,6 +539,8 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         search_drift_max=f(900.0),
         fast_fraction=f(0.05),
         fast_sigma=f(0.5),
+        fast_scale=f(0.2),
+        detector_ring=f(0.15),
         detector_min_ratio=f(0.6),
         detector_floor=f(0.1),
         detector_need=f(0.9),
@@ -513,6 +565,7 @@ class RGBDState(NamedTuple):
     colour_template: Array  # [C, B] normalised histograms of the cells' foreground
     depth_template: Array  # [C] mm, 0 = unknown
     depth_age: Array  # [C] frames since each depth template was last updated
+    depth_velocity: Array  # mm per frame, the target's estimated motion in depth
     vote: Array  # [C] occlusion votes of the last frame
     occluded_frames: Array  # int32, consecutive frames with the target voted occluded
     visible_size: Array  # [2] (w, h) of the last estimate with no cell voted occluded
@@ -750,7 +803,10 @@ def cell_terms(
     fg_count, d2, area, ratio = fg_all[:, :c], cs[..., 1], area_all[:, :c], ratio_all[:, :c]
     med, n_depth, near = ds[..., 0], ds[..., 1], ds[..., 2]
 
-    l_beta = params.beta_weight * beta_log_density(ratio, params.beta_a, params.beta_b)
+    l_beta = jnp.maximum(
+        params.beta_weight * beta_log_density(ratio, params.beta_a, params.beta_b),
+        params.beta_floor,
+    )
     l_col = jnp.maximum(-d2 / (2.0 * params.sigma_rgb**2), params.colour_floor)
     has_depth = (n_depth >= config.min_depth_count) & (mu > 0)
     sd = jnp.sqrt((params.sigma_depth + params.sigma_depth_rel * mu) ** 2 + drift**2)
@@ -781,7 +837,7 @@ def box_log_density(params: RGBDParams, fg_sum: Array, area_sum: Array) -> Array
     """Whole-box Beta term of a pooled foreground count / area (0 for an empty area)."""
     ratio = jnp.where(area_sum > 0, fg_sum / jnp.maximum(area_sum, 1.0), 0.0)
     lp = beta_log_density(ratio, params.box_beta_a, params.box_beta_b)
-    return jnp.where(area_sum > 0, params.beta_weight * lp, 0.0)
+    return jnp.where(area_sum > 0, jnp.maximum(params.beta_weight * lp, params.beta_floor), 0.0)
 
 
 # ----------------------------------------------------------------------------- proposal
@@ -832,6 +888,17 @@ def motion_position_log_density(
     return jnp.logaddexp(_log_clip(1.0 - g) + plain, _log_clip(g) + guided)
 
 
+def detector_scale_grid(config: RGBDConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``(i [S], j [S]) int``: the detector's size steps (``S = (2 Jw + 1)(2 Jh + 1)``).
+
+    Scale ``k`` is the box ``(W exp(i_k step_w), H exp(j_k step_h))`` for the reference
+    size ``(W, H)`` (the estimate's); static.
+    """
+    jw, jh = config.detector_scales
+    i, j = np.meshgrid(np.arange(-jw, jw + 1), np.arange(-jh, jh + 1), indexing="ij")
+    return i.ravel(), j.ravel()
+
+
 def detector_log_map(
     config: RGBDConfig,
     params: RGBDParams,
@@ -840,76 +907,172 @@ def detector_log_map(
     centre: Array,
     sigma: Array,
 ) -> tuple[Array, Array, Array]:
-    """Log-density of the detector proposal over the cells of a coarse map.
+    """Log-density of the detector proposal over (size, cell) of a coarse map.
 
-    ``target_pixels [H, W] bool``: foreground at the target's depth. Each cell of the
-    ``detector_stride`` map scores the share ``r`` of target pixels in a box of
-    ``box_wh`` centred on it; the proposal is ``∝ r^detector_power x N(cell; centre,
-    sigma^2)`` over the cells within ``3 sigma`` of ``centre`` with ``r >=
-    max(detector_min_ratio * best r there, detector_floor)``. Returns the normalised
-    log-probabilities ``[h * w]`` of the cells (``-inf`` off the support) and whether
-    the support is non-empty (when it is empty the log-probabilities are uniform and
-    must not be used), and ``fit``: the ratio of a box at ``centre`` over the best
+    ``target_pixels [H, W] bool``: foreground at the target's depth. For every size ``k``
+    of :func:`detector_scale_grid` (around ``box_wh``) and every cell of the
+    ``detector_stride`` map, a box of that size centred on the cell scores its
+    *tightness* ``t = r (1 - r_ring)``: the share ``r`` of target pixels inside it, and
+    the share ``r_ring`` in a ring ``detector_ring`` of its size wide around it (a box
+    inside a body has a full ring; a box around a body plus background has a low
+    ``r``). Shares count only the part inside the frame. The proposal is
+    ``∝ t^detector_power x N(cell; centre, sigma^2) x N(log size step; 0, fast_scale^2)``
+    over the pairs within ``3 sigma`` of ``centre`` with ``t >= max(detector_min_ratio *
+    best t there, detector_floor)``. Returns the normalised log-probabilities ``[S * h *
+    w]`` (index ``k * h * w + cell``; ``-inf`` off the support), whether the support is
+    non-empty (when it is empty the log-probabilities are uniform and must not be used),
+    and ``fit``: the tightness of the box of size ``box_wh`` at ``centre`` over the best
     one near it (1 when there is none).
     """
     s = config.detector_stride
     counts = coarse_counts(target_pixels, s) / float(s * s)  # [h, w] share per block
+    ones = jnp.ones_like(counts)
     hh, ww = counts.shape
-    rx = jnp.round(box_wh[0] / (2.0 * s)).astype(jnp.int32)
-    ry = jnp.round(box_wh[1] / (2.0 * s)).astype(jnp.int32)
-    # Share inside the frame (a box that sticks out is clamped to the frame).
-    ratio = window_sums(counts, ry, rx) / jnp.maximum(
-        window_sums(jnp.ones_like(counts), ry, rx), 1.0
-    )
+    si, sj = detector_scale_grid(config)
+    step_w, step_h = config.detector_scale_step
+    log_fw = jnp.asarray(si * step_w, jnp.float32)
+    log_fh = jnp.asarray(sj * step_h, jnp.float32)
+    bw = box_wh[0] * jnp.exp(log_fw)  # [S]
+    bh = box_wh[1] * jnp.exp(log_fh)
+    rx = jnp.round(bw / (2.0 * s)).astype(jnp.int32)
+    ry = jnp.round(bh / (2.0 * s)).astype(jnp.int32)
+    tx = jnp.maximum(jnp.round(params.detector_ring * bw / s), 1).astype(jnp.int32)
+    ty = jnp.maximum(jnp.round(params.detector_ring * bh / s), 1).astype(jnp.int32)
+
+    def tightness(ry, rx, ty, tx):
+        inner, inner_area = window_sums(counts, ry, rx), window_sums(ones, ry, rx)
+        outer, outer_area = (
+            window_sums(counts, ry + ty, rx + tx),
+            window_sums(ones, ry + ty, rx + tx),
+        )
+        r = inner / jnp.maximum(inner_area, 1.0)
+        ring_area = outer_area - inner_area
+        r_ring = jnp.where(ring_area > 0, (outer - inner) / jnp.maximum(ring_area, 1.0), 0.0)
+        return r * (1.0 - r_ring)
+
+    tight = jax.vmap(tightness)(ry, rx, ty, tx)  # [S, h, w]
     cx = (jnp.arange(ww, dtype=jnp.float32) + 0.5) * s
     cy = (jnp.arange(hh, dtype=jnp.float32) + 0.5) * s
     d2 = (cx[None] - centre[0]) ** 2 + (cy[:, None] - centre[1]) ** 2
-    # Support: at least detector_min_ratio of the best ratio within 3 sigma of the centre
-    # (people's silhouettes fill from a third to most of their box), and at least
-    # detector_floor in absolute terms (specks of noise are no detections).
+    # Support: at least detector_min_ratio of the best tightness within 3 sigma of the
+    # centre, and at least detector_floor in absolute terms (specks of noise are no
+    # detections).
     near = d2 <= 9.0 * jnp.maximum(sigma, 1.0) ** 2
-    best = jnp.max(jnp.where(near, ratio, 0.0))
-    ok = near & (ratio >= jnp.maximum(params.detector_min_ratio * best, params.detector_floor))
+    best = jnp.max(jnp.where(near[None], tight, 0.0))
+    floor = jnp.maximum(params.detector_min_ratio * best, params.detector_floor)
+    ok = near[None] & (tight >= floor)
+    size_prior = -0.5 * (log_fw**2 + log_fh**2) / jnp.maximum(params.fast_scale, 1e-3) ** 2
     logits = (
-        params.detector_power * jnp.log(jnp.maximum(ratio, 1e-6))
-        - 0.5 * d2 / jnp.maximum(sigma, 1.0) ** 2
+        params.detector_power * jnp.log(jnp.maximum(tight, 1e-6))
+        - 0.5 * d2[None] / jnp.maximum(sigma, 1.0) ** 2
+        + size_prior[:, None, None]
     )
     logits = jnp.where(ok, logits, -jnp.inf).reshape(-1)
     available = jnp.any(ok)
     logits = jnp.where(available, logits, 0.0)
-    # How well a box at the centre itself does, relative to the best one near it.
+    # How well the box of the reference size at the centre does, relative to the best.
     cell = map_cell_of(centre, s, (hh, ww))
-    at_centre = jnp.where(cell >= 0, ratio.reshape(-1)[jnp.maximum(cell, 0)], 0.0)
+    k0 = int(np.flatnonzero((si == 0) & (sj == 0))[0])
+    at_centre = jnp.where(cell >= 0, tight[k0].reshape(-1)[jnp.maximum(cell, 0)], 0.0)
     fit = jnp.where(best > 0, at_centre / jnp.maximum(best, 1e-6), 1.0)
     return logits - jax.nn.logsumexp(logits), available, fit
 
 
 def detector_draw(
-    key: Array, config: RGBDConfig, log_map: Array, shape: tuple[int, int], n: int
+    key: Array,
+    config: RGBDConfig,
+    log_map: Array,
+    shape: tuple[int, int],
+    box_wh: Array,
+    n: int,
 ) -> Array:
-    """``[n, 2]`` box centres: a cell of ``log_map`` (``[h * w]``), then uniform inside it."""
+    """``[n, 4]`` boxes ``(cx, cy, w, h)`` from ``log_map [S * h * w]``.
+
+    A (size, cell) pair, then the centre uniform inside the cell and the log-size
+    uniform within half a step of the pair's size (so the sizes of neighbouring steps
+    tile log-size, and :func:`detector_log_density` is a plain look-up). Drawn in two
+    stages (size, then cell given size) to keep the categorical draws small.
+    """
     s = config.detector_stride
-    k1, k2 = jax.random.split(key)
-    cell = jax.random.categorical(k1, log_map, shape=(n,))
-    u = jax.random.uniform(k2, (n, 2))
-    ww = shape[1]
+    hh, ww = shape
+    si, sj = detector_scale_grid(config)
+    step_w, step_h = config.detector_scale_step
+    k1, k2, k3 = jax.random.split(key, 3)
+    lm = log_map.reshape(len(si), hh * ww)
+    size_lp = jax.nn.logsumexp(lm, axis=-1)  # [S]
+    k = jax.random.categorical(k1, size_lp, shape=(n,))
+    cell = jax.random.categorical(k2, lm[k] - size_lp[k][:, None], axis=-1)
+    u = jax.random.uniform(k3, (n, 4))
+    log_w = jnp.log(box_wh[0]) + (jnp.asarray(si, jnp.float32)[k] + u[:, 2] - 0.5) * step_w
+    log_h = jnp.log(box_wh[1]) + (jnp.asarray(sj, jnp.float32)[k] + u[:, 3] - 0.5) * step_h
     return jnp.stack(
         [
             ((cell % ww).astype(jnp.float32) + u[:, 0]) * s,
             ((cell // ww).astype(jnp.float32) + u[:, 1]) * s,
+            jnp.exp(log_w),
+            jnp.exp(log_h),
         ],
         axis=-1,
     )
 
 
 def detector_log_density(
-    config: RGBDConfig, log_map: Array, shape: tuple[int, int], xy: Array
+    config: RGBDConfig,
+    log_map: Array,
+    shape: tuple[int, int],
+    box_wh: Array,
+    boxes: Array,
+    sizes: bool = True,
 ) -> Array:
-    """``log q(xy) [N]`` of :func:`detector_draw` (per pixel^2; ``-inf`` off the map)."""
+    """``log q(cx, cy, w, h) [N]`` of :func:`detector_draw` for ``boxes [N, 4]`` (cxcywh;
+    per pixel^4; ``-inf`` off the map or off the size grid). ``sizes=False``: the density
+    of the centre alone (per pixel^2; the sizes are not drawn from the detector)."""
     s = config.detector_stride
-    cell = map_cell_of(xy, s, shape)
-    lp = jnp.where(cell >= 0, log_map[jnp.maximum(cell, 0)], -jnp.inf)
-    return lp - 2.0 * jnp.log(jnp.float32(s))
+    hh, ww = shape
+    jw, jh = config.detector_scales
+    step_w, step_h = config.detector_scale_step
+    cell = map_cell_of(boxes[:, :2], s, shape)
+    w = jnp.maximum(boxes[:, 2], 1e-6)
+    h = jnp.maximum(boxes[:, 3], 1e-6)
+    i = jnp.floor(jnp.log(w / box_wh[0]) / step_w + 0.5).astype(jnp.int32)
+    j = jnp.floor(jnp.log(h / box_wh[1]) / step_h + 0.5).astype(jnp.int32)
+    lm = log_map.reshape(-1, hh * ww)
+    if not sizes:
+        marginal = jax.nn.logsumexp(lm, axis=0)  # [h * w]
+        lp = jnp.where(cell >= 0, marginal[jnp.maximum(cell, 0)], -jnp.inf)
+        return lp - 2.0 * jnp.log(jnp.float32(s))
+    on = (cell >= 0) & (jnp.abs(i) <= jw) & (jnp.abs(j) <= jh)
+    k = (jnp.clip(i, -jw, jw) + jw) * (2 * jh + 1) + (jnp.clip(j, -jh, jh) + jh)
+    lp = jnp.where(on, lm[k, jnp.maximum(cell, 0)], -jnp.inf)
+    # Per pixel^2 of centre, and the log-uniform size: 1 / (w step_w) x 1 / (h step_h).
+    return lp - 2.0 * jnp.log(jnp.float32(s)) - jnp.log(w * step_w) - jnp.log(h * step_h)
+
+
+def motion_size_log_density(
+    config: RGBDConfig,
+    params: RGBDParams,
+    ancestors: Array,
+    mean_wh: Array,
+    wh: Array,
+    scale: Array | None,
+) -> Array:
+    """``log p(w, h | ancestor) [N]`` of the box size drawn by ``dynamics.propagate``.
+
+    ``mean_wh [N, 2]``: the noise-free prediction. The size noise of every model that
+    changes sizes is a correlated Gaussian: height sd ``tau_h s``, width sd ``tau_w s a``
+    (``a`` = the ancestor's aspect / 0.41 when ``size_correlation > 0``, else 1),
+    correlation ``size_correlation`` (the guided proposal only touches the size
+    velocities). Zero for the fixed-size models (their sizes are not proposed).
+    """
+    if config.model.endswith("_fixed"):
+        return jnp.zeros(wh.shape[:1], jnp.float32)
+    sc = 1.0 if scale is None else scale
+    rho = jnp.clip(jnp.asarray(params.motion.size_correlation, jnp.float32), 0.0, 0.999)
+    aspect = ancestors[:, 4] / jnp.maximum(ancestors[:, 5], 1e-3)
+    a = jnp.where(rho > 0, aspect / 0.41, 1.0)
+    sw = jnp.broadcast_to(params.tau[4] * sc * a, wh.shape[:1])
+    sh = jnp.broadcast_to(params.tau[5] * sc, wh.shape[:1])
+    return _gauss2_log_density(wh - mean_wh, sw * sw, rho * sw * sh, sh * sh)
 
 
 # ----------------------------------------------------------------------------- the filter
@@ -936,6 +1099,9 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
     k = config.k
     c = config.n_cells
     resampler = rs.SCHEMES[config.resampler]
+    # Fixed-size models: the detector proposes centres only (one size, the estimate's).
+    sizes = not config.model.endswith("_fixed")
+    det_config = config if sizes else dataclasses.replace(config, detector_scales=(0, 0))
 
     def clamp(particles: Array, width: int, height: int) -> Array:
         # Boxes stay inside the frame (the ground truth is the visible part of the
@@ -990,6 +1156,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             colour_template=hist,
             depth_template=med,
             depth_age=jnp.zeros((c,), jnp.float32),
+            depth_velocity=jnp.zeros((), jnp.float32),
             vote=jnp.zeros((c,), jnp.float32),
             occluded_frames=jnp.zeros((), jnp.int32),
             visible_size=box[2:4],
@@ -1070,24 +1237,26 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         spread: Array,
         extra: Array,
     ) -> tuple[Array, Array]:
-        """Mixture proposal of the box centres; returns the particles and ``log p - log q [N]``.
+        """Mixture proposal of the boxes; returns the particles and ``log p - log q [N]``.
 
         ``particles`` were drawn from the motion model. A share ``detector_fraction``
-        of them moves its centre to a draw of the detector proposal
-        (:func:`detector_log_map`: boxes of the estimate's size full of foreground at
-        the target's depth, near the predicted centre), the rest keeps it. Each
-        particle's proposal is ``q = (1 - a) p_motion + a q_det`` given its ancestor;
-        the model's transition is ``p = (1 - f) p_motion + f N(mean, (fast_sigma h)^2)``
-        (a fast-motion component: a person near the camera can move half a box per
-        frame); the weight gets ``p / q`` (exact: both share the size and velocity
-        draws). Without any detection ``a = 0``.
+        of them moves its box (centre and size) to a draw of the detector proposal
+        (:func:`detector_log_map`: tight boxes around foreground at the target's depth,
+        sizes on a grid around the estimate's, near the predicted centre), the rest
+        keeps it. Each particle's proposal is ``q = (1 - a) p_motion + a q_det`` of its
+        ``(cx, cy, w, h)`` given its ancestor; the model's transition is ``p = (1 - f)
+        p_motion + f N(mean, (fast_sigma h)^2) LN(size; predicted size, fast_scale^2)``
+        (a fast component: a person near the camera can move half a box per frame, and
+        change size by a fifth, or come into view); the weight gets ``p / q`` (exact:
+        both share the velocity draws). Without any detection ``a = 0``. Fixed-size
+        models: the detector proposes centres only.
         """
         s = config.detector_stride
         height, width = depth.shape
         shape = (height // s, width // s)
         k_draw, k_mix = jax.random.split(key)
         zero_tau = jnp.zeros_like(params.tau)
-        mean = propagate(
+        pred = propagate(
             k_mix,
             state.particles,
             state.previous,
@@ -1096,7 +1265,8 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             model=config.model,
             hierarchical=config.hierarchical,
             scale=scale,
-        )[:, :2]
+        )
+        mean, mean_wh = pred[:, :2], pred[:, 4:6]
         target_z = target_depth(state)
         z = depth.astype(jnp.float32)
         gate = target_gate(params, state, target_z) + params.depth_speed
@@ -1104,10 +1274,11 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         w = jnp.exp(state.log_weights)
         centre = w @ mean
         sigma = params.fast_sigma * state.estimate[3] * spread
+        ref_wh = jnp.maximum(state.estimate[2:4], config.min_size)
         log_map, available, fit = detector_log_map(
-            config, params, pixels, state.estimate[2:4], centre, sigma
+            det_config, params, pixels, ref_wh, centre, sigma
         )
-        det_xy = detector_draw(k_draw, config, log_map, shape, n)
+        det = detector_draw(k_draw, det_config, log_map, shape, ref_wh, n)
         # Draw from the detector only when the motion prior's prediction misses: a box at
         # the predicted centre holds less than detector_need of the best one's share.
         # (A choice made from the data before drawing: the weights stay exact.)
@@ -1118,17 +1289,35 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             active & available & (fit < params.detector_need), config.detector_fraction, 0.0
         )
         use = jax.random.uniform(jax.random.fold_in(k_draw, 1), (n,)) < alpha
-        xy = jnp.where(use[:, None], det_xy, particles[:, :2])
+        cols = jnp.array([0, 1, 4, 5]) if sizes else jnp.array([0, 1])
+        box = jnp.where(use[:, None], det[:, : len(cols)] if not sizes else det, particles[:, cols])
+        particles = particles.at[:, cols].set(box)
+        xy, wh = particles[:, :2], particles[:, 4:6]
         lp_motion = motion_position_log_density(
             config, params, state.particles, mean, xy, scale, extra
         )
         var_fast = (params.fast_sigma * state.particles[:, 5]) ** 2
         lp_fast = _gauss2_log_density(xy - mean, var_fast, jnp.zeros_like(var_fast), var_fast)
+        if sizes:
+            lp_motion = lp_motion + motion_size_log_density(
+                config, params, state.particles, mean_wh, wh, scale
+            )
+            # Log-normal sizes around the prediction (density per pixel^2 of (w, h)).
+            log_ratio = jnp.log(jnp.maximum(wh, 1e-3)) - jnp.log(jnp.maximum(mean_wh, 1e-3))
+            fs = params.fast_scale
+            lp_fast = lp_fast + jnp.sum(
+                -0.5 * (log_ratio / fs) ** 2
+                - jnp.log(fs * jnp.sqrt(2.0 * jnp.pi))
+                - jnp.log(jnp.maximum(wh, 1e-3)),
+                axis=-1,
+            )
         f = jnp.where(active, params.fast_fraction, 0.0)
         lp_model = jnp.logaddexp(_log_clip(1.0 - f) + lp_motion, _log_clip(f) + lp_fast)
-        lq_det = detector_log_density(config, log_map, shape, xy)
+        lq_det = detector_log_density(
+            det_config, log_map, shape, ref_wh, particles[:, [0, 1, 4, 5]], sizes
+        )
         lq = jnp.logaddexp(_log_clip(1.0 - alpha) + lp_motion, _log_clip(alpha) + lq_det)
-        return particles.at[:, :2].set(xy), lp_model - lq
+        return particles, lp_model - lq
 
     def target_extent(
         params: RGBDParams, state: RGBDState, obs: _Observation, depth: Array, est: Array
@@ -1179,6 +1368,15 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         height, width = frame.colour.shape[:2]
         k_prop, k_spread, k_flag, k_res, k_rec = jax.random.split(key, 5)
         k_det = jax.random.fold_in(key, 6)
+        # Depth templates move with the target (alpha-beta filter, module docstring):
+        # predict them one frame ahead before they are compared with anything.
+        state = state._replace(
+            depth_template=jnp.where(
+                state.depth_template > 0,
+                jnp.maximum(state.depth_template + state.depth_velocity, config.depth_range[0]),
+                0.0,
+            )
+        )
         obs = _observe(config, params, frame, state.background)
         scale = None if config.tau_height is None else state.particles[:, 5] / config.tau_height
         particles = propagate(
@@ -1302,7 +1500,21 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         colour_template, depth_template = state.colour_template, state.depth_template
         depth_age = state.depth_age
         if config.template_update:
-            hist, med, total = _cell_templates(config, obs, est)
+            # Depth decides: the templates learn only from pixels that are not nearer than
+            # the predicted target depth by more than the occluder margin (an occluder
+            # covering half a cell would otherwise become the cell's median).
+            z_pred = target_depth(state)
+            near_cut = z_pred - jnp.maximum(
+                params.occluder_margin, params.occluder_margin_rel * z_pred
+            )
+            z_frame = frame.depth.astype(jnp.float32)
+            gated = obs._replace(
+                depth_bins=jnp.where(
+                    (z_pred > 0) & (z_frame > 0) & (z_frame < near_cut), -1, obs.depth_bins
+                )
+            )
+            hist, _, _ = _cell_templates(config, obs, est)
+            _, med, total = _cell_templates(config, gated, est)
             ok = (~voted) & (~lost)
             # Colour: eq. 7 in the cells voted visible whose estimate still resembles the
             # template (d < template_gate): a misplaced estimate would teach the template
@@ -1343,6 +1555,20 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
                 d_ok, updated, jnp.where(follow, depth_template + shift, depth_template)
             )
             depth_age = jnp.where(d_ok | follow, 0.0, jnp.minimum(state.depth_age + 1.0, 100.0))
+            # Velocity: corrected by the mean innovation (median - predicted template) of
+            # the updated cells; while nothing is measured it fades (by the same gain), so
+            # the templates of a hidden target do not run away.
+            innovation = jnp.sum(jnp.where(moved, med - state.depth_template, 0.0)) / jnp.maximum(
+                jnp.sum(moved), 1
+            )
+            depth_velocity = jnp.where(
+                jnp.any(moved),
+                state.depth_velocity + params.depth_velocity_rate * innovation,
+                (1.0 - params.depth_velocity_fade) * state.depth_velocity,
+            )
+            depth_velocity = jnp.clip(depth_velocity, -params.max_drift, params.max_drift)
+        else:
+            depth_velocity = state.depth_velocity
         background = state.background
         if config.background_update:
             background = update_background(
@@ -1361,6 +1587,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             colour_template=colour_template,
             depth_template=depth_template,
             depth_age=depth_age,
+            depth_velocity=depth_velocity,
             vote=vote,
             occluded_frames=occluded_frames.astype(jnp.int32),
             visible_size=jnp.where((jnp.max(vote) < 0.1) & ~lost, est[2:4], state.visible_size),
