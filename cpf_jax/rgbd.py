@@ -124,9 +124,9 @@ innovation (median - prediction) of the updated cells, and fades by
 ``depth_velocity_fade`` per frame in frames where no cell is updated (a walking person
 keeps walking while hidden). The cell medians that update the templates count only
 pixels not nearer than the predicted target depth by more than the occluder margin
-(depth decides: an occluder covering half a cell must not become its template). Without it a target walking away at 150-250 mm per
-frame (the IST recording, frames 52-62) leaves its templates and the target-depth gates
-behind.
+(depth decides: an occluder covering half a cell must not become its template). Without
+the velocity, a target walking away at 150-250 mm per frame (the IST recording, frames
+52-62) leaves its templates and the target-depth gates behind.
 
 Depth templates age: ``depth_age`` counts the frames since a cell's template was
 last updated; the target may have moved ``depth_speed`` mm per frame since, so the
