@@ -154,30 +154,37 @@ def markdown(res: dict) -> str:
     lines = ["# Colour-layer tables (synthetic sequences)", "", res["meta"]["note"], ""]
 
     def table(title, d):
+        if not d:
+            return
         head, row = _md_row(d)
         sep = "|" + "|".join("---:" for _ in d) + "|"
         lines.extend([f"## {title}", "", head, sep, row, ""])
 
     table(
-        "Table 3.1: success rate (%) vs number of particles (thesis: 37.5 ... 91)", res["table_3_1"]
+        "Table 3.1: success rate (%) vs number of particles (thesis: 37.5 ... 91)",
+        res.get("table_3_1"),
     )
     table(
         "Table 3.3: success rate (%) vs walking speed, N = 100 (thesis: 84 / 82.5 / 74.5)",
-        res["table_3_3"],
+        res.get("table_3_3"),
     )
-    table("Table 3.4: dynamic models, N = 100 (thesis: 83 / 81 / 77.5 / 59)", res["table_3_4"])
-    table("Table 3.5: plain vs hierarchical sampling, N = 50 (thesis: 60 / 79.5)", res["table_3_5"])
-    table("Every walking scenario at N = 100", res["per_scenario_n100"])
-    table("Likelihood width sigma, N = 100", res["sigma_sweep"])
-    table("Likelihood ablation, N = 100", res["likelihood_ablation"])
-    table("Other scenarios, N = 100", res["extra_scenarios"])
-    lines += [
-        "## Optional likelihood terms, N = 100",
-        "",
-        "| variant | walking mean | walking min | Crossing SR | Crossing AUC |",
-        "|---|---:|---:|---:|---:|",
-    ]
-    for label, r in res["likelihood_terms"].items():
+    table("Table 3.4: dynamic models, N = 100 (thesis: 83 / 81 / 77.5 / 59)", res.get("table_3_4"))
+    table(
+        "Table 3.5: plain vs hierarchical sampling, N = 50 (thesis: 60 / 79.5)",
+        res.get("table_3_5"),
+    )
+    table("Every walking scenario at N = 100", res.get("per_scenario_n100"))
+    table("Likelihood width sigma, N = 100", res.get("sigma_sweep"))
+    table("Likelihood ablation, N = 100", res.get("likelihood_ablation"))
+    table("Other scenarios, N = 100", res.get("extra_scenarios"))
+    if res.get("likelihood_terms"):
+        lines += [
+            "## Optional likelihood terms, N = 100",
+            "",
+            "| variant | walking mean | walking min | Crossing SR | Crossing AUC |",
+            "|---|---:|---:|---:|---:|",
+        ]
+    for label, r in res.get("likelihood_terms", {}).items():
         c = r.get("crossing") or {}
         lines.append(
             f"| {label} | {r['walking_mean']:.1f} | {r['walking_min']:.1f} | "
@@ -194,7 +201,12 @@ def markdown(res: dict) -> str:
             "(OpenCV CSRT 95.0 / 70.0, MIL 25.8 / 18.7, CamShift 0.8 / 5.7).",
             "",
         ]
-    lines.append(f"min success at N = 100 over walking scenarios: {res['min_success_n100']:.1f} %")
+    if "min_success_n100" in res:
+        lines.append(
+            f"min success at N = 100 over walking scenarios: {res['min_success_n100']:.1f} %"
+        )
+    if not res["meta"].get("complete", True):
+        lines.append("INCOMPLETE: the run stopped before every table was written.")
     return "\n".join(lines) + "\n"
 
 
@@ -212,6 +224,31 @@ def main(argv=None) -> dict:
     params = default_colour_params()
     t0 = time.time()
     res: dict = {}
+    res["meta"] = {
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "scene_seeds": len(seeds),
+        "filter_seeds": keys,
+        "walking_scenarios": list(WALKING),
+        "config": {k: str(v) for k, v in dataclasses.asdict(base).items()},
+        "params": {
+            k: np.asarray(v).round(4).tolist() for k, v in params._asdict().items() if k != "motion"
+        },
+        "seconds": 0,
+        "complete": False,
+        "jax": jax.__version__,
+        "note": (
+            f"Success rate (%, IoU >= 0.5) averaged over {len(seeds)} scene seeds x {keys} "
+            f"filter seeds per scenario; walking scenarios: {', '.join(WALKING)}."
+        ),
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save():
+        """Write what the run has so far: an interrupted run keeps its finished tables."""
+        res["meta"]["seconds"] = round(time.time() - t0)
+        out.write_text(json.dumps(res, indent=2) + "\n")
+        out.with_suffix(".md").write_text(markdown(res))
 
     res["table_3_1"] = {}
     per_n = {}
@@ -221,10 +258,12 @@ def main(argv=None) -> dict:
         res["table_3_1"][str(n)] = mean
         per_n[n] = per
         print(f"N={n}: {mean:.1f} % {per}", flush=True)
+        save()
     per100 = per_n[100]
     res["per_scenario_n100"] = per100
     res["min_success_n100"] = float(min(per100.values()))
     res["table_3_3"] = {k: per100[v] for k, v in SPEEDS.items()}
+    save()
 
     n100 = dataclasses.replace(base, n_particles=100)
     res["table_3_4"] = {}
@@ -235,6 +274,7 @@ def main(argv=None) -> dict:
         mean, _ = mean_over(WALKING, seeds, keys, dataclasses.replace(n100, model=model), params)
         res["table_3_4"][label] = mean
         print(f"model {label}: {mean:.1f} %", flush=True)
+        save()
 
     n50 = dataclasses.replace(base, n_particles=50)
     res["table_3_5"] = {
@@ -246,6 +286,7 @@ def main(argv=None) -> dict:
         )[0],
     }
     print(f"table 3.5: {res['table_3_5']}", flush=True)
+    save()
 
     res["sigma_sweep"] = {}
     for sigma in (0.05, 0.1, 0.2, 0.5, 1.0):
@@ -255,6 +296,7 @@ def main(argv=None) -> dict:
             continue
         res["sigma_sweep"][str(sigma)] = mean_over(WALKING, seeds, keys, n100, p)[0]
     print(f"sigma sweep: {res['sigma_sweep']}", flush=True)
+    save()
 
     thesis_cfg = dataclasses.replace(n100, parts=1, ring_margin=0.0, hierarchical=False)
     thesis_p = params._replace(
@@ -283,11 +325,13 @@ def main(argv=None) -> dict:
         "ours (default)": res["table_3_1"]["100"],
     }
     print(f"ablation: {res['likelihood_ablation']}", flush=True)
+    save()
 
     res["extra_scenarios"] = mean_over(EXTRA, seeds, keys, n100, params)[1]
     crossing_keys = 1 if args.quick else 5
     res["crossing"] = crossing(100, crossing_keys, base, params)
     print(f"crossing: {res['crossing']}", flush=True)
+    save()
 
     terms = {
         "default": (base, params),
@@ -312,27 +356,10 @@ def main(argv=None) -> dict:
             "crossing": cross,
         }
         print(f"terms {label}: {res['likelihood_terms'][label]}", flush=True)
+        save()
 
-    res["meta"] = {
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "scene_seeds": len(seeds),
-        "filter_seeds": keys,
-        "walking_scenarios": list(WALKING),
-        "config": {k: str(v) for k, v in dataclasses.asdict(base).items()},
-        "params": {
-            k: np.asarray(v).round(4).tolist() for k, v in params._asdict().items() if k != "motion"
-        },
-        "seconds": round(time.time() - t0),
-        "jax": jax.__version__,
-        "note": (
-            f"Success rate (%, IoU >= 0.5) averaged over {len(seeds)} scene seeds x {keys} "
-            f"filter seeds per scenario; walking scenarios: {', '.join(WALKING)}."
-        ),
-    }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n")
-    out.with_suffix(".md").write_text(markdown(res))
+    res["meta"]["complete"] = True
+    save()
     print(markdown(res))
     return res
 
