@@ -402,18 +402,32 @@ def reference_histogram(
     return _normalise(box_histograms(idx, rects, n_bins_of(bins)))
 
 
+#: Largest factor by which ``_box_and_ring_counts`` scales the in-frame part of a ring
+#: cut off by the frame up to the ring's full area (a sliver of ring is a poor sample).
+RING_EXTRAPOLATION_MAX = 4.0
+
+
 def _box_and_ring_counts(
     frame: Frame, box_xywh: Array, bins: tuple[int, ...], margin: float
 ) -> tuple[Array, Array]:
     """Bin counts ``[B]`` inside an ``(x, y, w, h)`` box and in the ring around it (the box
-    grown by ``margin`` of its size per side, minus the box)."""
+    grown by ``margin`` of its size per side, minus the box). Where the frame cuts the
+    ring off, its counts are scaled to the ring's full area (at most
+    ``RING_EXTRAPOLATION_MAX`` times)."""
     idx = bin_index(frame.colour, bins)
     box = jnp.asarray(box_xywh, jnp.float32)
     grow = jnp.array([-margin, -margin, 2 * margin, 2 * margin], jnp.float32)
     grown = box + grow * box[jnp.array([2, 3, 2, 3])]
     rects = box_ops.xywh_to_rect(jnp.stack([box, grown]))
     h = box_histograms(idx, rects, n_bins_of(bins))
-    return h[0], jnp.maximum(h[1] - h[0], 0.0)
+    ring = jnp.maximum(h[1] - h[0], 0.0)
+    # The frame may cut the ring off (a person close to the camera fills the frame's
+    # height): scale its counts up to the ring's full area, so that a colour's
+    # background share does not depend on how much of the surround is in view.
+    intended = grown[2] * grown[3] - box[2] * box[3]
+    seen = jnp.sum(ring)  # every pixel has a bin: the ring's in-frame area
+    ring = ring * jnp.clip(intended / jnp.maximum(seen, 1.0), 1.0, RING_EXTRAPOLATION_MAX)
+    return h[0], ring
 
 
 def contrast_weights(

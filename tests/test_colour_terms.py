@@ -188,3 +188,32 @@ def test_config_rejects_bad_terms():
         ColourConfig(contrast="ratio")
     with pytest.raises(ValueError, match="layout"):
         ColourConfig(layout=(0, 3))
+
+
+def test_contrast_weights_do_not_depend_on_how_much_ring_the_frame_cuts_off():
+    """A person filling the frame's height (close to the camera): the ring above and
+    below is mostly outside the frame. The floor's weight must match the one computed
+    with the whole ring in view (the same scene padded with more floor): a cut-off
+    ring must not make a background colour look like the person's (walk_away)."""
+    rng = np.random.default_rng(5)
+    big = np.empty((220, 160, 3), np.uint8)
+    big[..., 0] = 90 + rng.integers(0, 20, big.shape[:2])
+    big[..., 1] = 110 + rng.integers(0, 20, big.shape[:2])
+    big[..., 2] = 90 + rng.integers(0, 20, big.shape[:2])
+    big[60:110, 60:90] = (200, 30, 40)  # shirt
+    big[110:160, 60:70] = (30, 40, 150)  # legs, floor between them
+    big[110:160, 80:90] = (30, 40, 150)
+    box_big = np.array([60, 60, 30, 100], np.float32)
+    crop = big[50:170]  # 120 rows: 10 px of ring left above and below the box
+    box_crop = box_big - np.array([0, 50, 0, 0], np.float32)
+    weights = jax.jit(lambda f, b: contrast_weights(f, b, threshold=0.3))
+    full = np.asarray(weights(Frame(jnp.asarray(big), jnp.zeros(big.shape[:2])), box_big))
+    cut = np.asarray(weights(Frame(jnp.asarray(crop), jnp.zeros(crop.shape[:2])), box_crop))
+    idx = np.asarray(bin_index(jnp.asarray(crop), COLOUR_BINS))
+    floor = np.bincount(idx[120 - 10 :, :50].ravel(), minlength=full.shape[0])
+    floor = floor / floor.sum()
+    # the floor's weight, averaged over its noisy bins, with and without the cut
+    assert abs(floor @ full - floor @ cut) < 0.02, (floor @ full, floor @ cut)
+    assert floor @ cut < -0.15  # background, not neutral
+    shirt = idx[60, 70]
+    np.testing.assert_allclose(cut[shirt], full[shirt], atol=0.02)
