@@ -68,7 +68,8 @@ them against the default in ``likelihood_terms``):
   Histograms are blind to where colours sit inside the box; when the clothes'
   colours are also the background's (a dark jacket on a dark road, OTB
   Crossing), the histogram terms prefer a box on the legs alone and only the
-  layout pins the box's vertical extent. Measured (N = 100, colour_tables.py):
+  layout pins the box's vertical extent. Measured before the ring correction
+  above (N = 100, colour_tables.py):
   on Crossing it raises the success rate from 46 to 76 % (AUC 48 -> 59); on
   the synthetic walking scenes the mean is about equal (95.0 vs 95.4) and the
   worst scenario better (89.9 vs 87.0), but walk-across loses 4-6 points
