@@ -249,6 +249,11 @@ def main(argv=None) -> dict:
         res["meta"]["seconds"] = round(time.time() - t0)
         out.write_text(json.dumps(res, indent=2) + "\n")
         out.with_suffix(".md").write_text(markdown(res))
+        # Drop compiled runners between tables: a whole run compiles dozens of
+        # configs, and the full run died twice in LLVM ("Cannot allocate memory")
+        # at the likelihood_terms stage with every executable kept.
+        _runner.cache_clear()
+        jax.clear_caches()
 
     res["table_3_1"] = {}
     per_n = {}
