@@ -19,6 +19,7 @@ from cpf_jax.rgbd import (
     detector_draw,
     detector_log_density,
     detector_log_map,
+    fast_length,
     motion_position_log_density,
     motion_size_log_density,
     track_boxes,
@@ -326,3 +327,48 @@ def test_detector_proposal_follows_jumps_the_motion_prior_cannot(jumps, variant)
     without = _success(jumps, variant, 0.0)
     assert with_det >= 90.0, (with_det, without)
     assert without < (with_det - 20.0 if variant == "rgbd" else with_det), (with_det, without)
+
+
+def _fast_length_ref(reach, tmpl, h):
+    out = []
+    for r, t, hh in zip(reach, tmpl, h, strict=True):
+        known = t[t > 0]
+        z = known.mean() if known.size else 0.0
+        out.append(min(hh, r / z) if r > 0 and z > 0 else hh)
+    return np.array(out, np.float32)
+
+
+@pytest.mark.parametrize("mode", ["plain", "jit", "vmap"])
+def test_fast_length_caps_the_height_by_the_initial_view_at_the_target_depth(mode):
+    # A 144 px head-and-shoulders box at 1 m: at 4 m the same view is 36 px high, so a
+    # 196 px box there may jump no further than the 36 px view would; unknown depth or
+    # reach leaves the box height.
+    reach = np.array([144e3, 144e3, 0.0, 144e3, 144e3], np.float32)
+    tmpl = np.array(
+        [[4000, 4000, 0, 4000], [900, 1100, 1000, 1000], [4000] * 4, [0] * 4, [500] * 4],
+        np.float32,
+    )
+    h = np.array([196.0, 150.0, 196.0, 196.0, 196.0], np.float32)
+    ref = _fast_length_ref(reach, tmpl, h)
+    np.testing.assert_allclose(ref, [36.0, 144.0, 196.0, 196.0, 196.0], rtol=1e-6)
+    if mode == "vmap":
+        got = jax.vmap(fast_length)(reach, tmpl, h)
+    else:
+        fn = jax.jit(fast_length) if mode == "jit" else fast_length
+        got = jnp.stack([fn(r, t, x) for r, t, x in zip(reach, tmpl, h, strict=True)])
+    np.testing.assert_allclose(np.asarray(got), ref, rtol=1e-6)
+    # Per-particle heights against one state's cap broadcast.
+    hs = jnp.array([20.0, 36.0, 80.0])
+    np.testing.assert_allclose(np.asarray(fast_length(reach[0], tmpl[0], hs)), [20, 36, 36])
+
+
+def test_init_records_the_reach_of_the_initial_box(jumps):
+    frames, gt, bg = jumps
+    cfg = RGBDConfig(variant="grid-occlusion", n_particles=16).with_window(PERSON, (H, W))
+    filt = build_rgbd_filter(cfg)
+    params = default_rgbd_params(cfg)
+    first = jax.tree_util.tree_map(lambda x: x[0], frames)
+    state = filt.init(params, jax.random.PRNGKey(0), first, jnp.asarray(gt[0]), bg)
+    # The figure stands at 2500 mm; the cell medians come from a log-depth histogram
+    # whose bins are 5 % wide.
+    np.testing.assert_allclose(float(state.reach), 50.0 * 2500.0, rtol=0.05)
