@@ -372,3 +372,11 @@ def test_init_records_the_reach_of_the_initial_box(jumps):
     # The figure stands at 2500 mm; the cell medians come from a log-depth histogram
     # whose bins are 5 % wide.
     np.testing.assert_allclose(float(state.reach), 50.0 * 2500.0, rtol=0.05)
+
+
+def test_depth_cap_is_on_for_grid_occlusion_only_unless_set():
+    assert RGBDConfig(variant="grid-occlusion").depth_cap
+    assert not RGBDConfig(variant="grid").depth_cap
+    assert not RGBDConfig(variant="rgbd").depth_cap
+    assert RGBDConfig(variant="rgbd", fast_depth_cap=True).depth_cap
+    assert not RGBDConfig(variant="grid-occlusion", fast_depth_cap=False).depth_cap
