@@ -36,7 +36,8 @@ Ground truth
 * ``meta``: the spec, the camera pose, ``up`` (world up in camera coordinates),
   ``joint_visible [T, J]`` (the joint's own body part is the nearest surface at its
   pixel), ``visible_fraction`` and ``occlusion`` (0 none, 1 partial, 2 full) per frame,
-  per-frame ``gain`` of the illumination, the walked path.
+  per-frame ``gain`` of the illumination, the walked path, ``background_colour`` and
+  ``background_depth``: the empty room without noise (a clean background model).
 
 Depth model
 -----------
@@ -152,8 +153,10 @@ class ScenarioSpec:
     ``lane_gap_m`` apart around ``distance_m``, U-turns at the sides, as many crossings
     as the sequence needs); ``"towards"`` / ``"away"`` walk between ``far_m`` and
     ``near_m``; ``"turn"`` walks across at ``far_m - 0.4`` then turns 90 degrees towards
-    the camera (L-shaped). Single-pass paths clip the default ``n_frames`` so the person
-    stays in view; an explicit longer ``n_frames`` lets them walk on (and out of view).
+    the camera (L-shaped); ``"away_back"`` walks away from ``near_m`` to ``far_m``, makes a
+    U-turn (radius 0.3 m) and walks back towards the camera. Single-pass paths clip the
+    default ``n_frames`` so the person stays in view; an explicit longer ``n_frames`` lets
+    them walk on (and out of view).
 
     Difficulty knobs: ``fps`` (frame spacing; motion per frame is ``speed / fps``),
     ``clutter`` (number of furniture objects), ``clutter_match`` (fraction of them coloured
@@ -255,6 +258,28 @@ SCENARIOS: dict[str, ScenarioSpec] = {
                 kind="person",
                 mirror_x=True,
                 clothing=Clothing(shirt=(155, 40, 55), trousers=(40, 48, 80), hair=(60, 45, 35)),
+            ),
+        ),
+    ),
+    # The walker walks away, turns round while a second person (another outfit) crosses
+    # in front, and comes back towards the camera: a target that reverses its motion in
+    # depth while hidden (the IST recording's second occlusion). The crossing is timed to
+    # hide the far end of the walk (about frames 20-40).
+    "occlusion_return": ScenarioSpec(
+        path="away_back",
+        near_m=2.1,
+        far_m=3.9,
+        room_depth_m=4.9,
+        clothing=Clothing(shirt=(45, 120, 75), trousers=(60, 55, 50)),
+        occluders=(
+            Occluder(
+                size_m=(0.5, 1.8, 0.3),
+                start_xz=(-0.8, 1.6),
+                end_xz=(2.0, 1.6),
+                t0_s=0.0,
+                t1_s=8.0,
+                kind="person",
+                clothing=Clothing(shirt=(120, 110, 150), trousers=(70, 60, 50), hair=(40, 30, 25)),
             ),
         ),
     ),
@@ -512,7 +537,22 @@ def _plan_path(spec: ScenarioSpec, rng: np.random.Generator, duration_s: float):
         wps = wps * np.array([mirror, 1.0])
         length = body.planned_length(wps, 0.5)
         return wps, 0.5, 0.0, length, length
-    raise ValueError(f"unknown path {spec.path!r}; expected 'pace', 'towards', 'away' or 'turn'")
+    if spec.path == "away_back":
+        r = 0.3
+        x0 = rng.uniform(-0.2, 0.0)
+        wps = np.array(
+            [
+                (x0, spec.near_m),
+                (x0, spec.far_m),
+                (x0 + 2 * r, spec.far_m),
+                (x0 + 2 * r, spec.near_m),
+            ]
+        )
+        length = body.planned_length(wps, r)
+        return wps, r, 0.0, length, length
+    raise ValueError(
+        f"unknown path {spec.path!r}; expected 'pace', 'towards', 'away', 'turn' or 'away_back'"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1196,6 +1236,10 @@ def make_sequence(
     meta = dict(
         spec=spec,
         seed=seed,
+        # The empty room (no walker, no occluders, no sensor noise): a clean background
+        # model for paths that never uncover the middle of the view ("away_back").
+        background_colour=bg_u8,
+        background_depth=np.where(bg_missing, 0, np.rint(bg_zmm)).astype(np.uint16),
         camera_height_m=spec.camera_height_m,
         camera_pitch_deg=spec.camera_pitch_deg,
         world_to_camera_mm=world_to_camera,

@@ -427,6 +427,58 @@ def test_depth_templates_follow_a_target_walking_away():
     assert lags[0.0] > 2.0 * lags[0.2], lags
 
 
+def _reversal_toy(rng: np.random.Generator):
+    """The toy occlusion scene, but the figure walks away at 40 mm per frame until it is
+    hidden behind the box (t = 38, 3320 mm) and comes back at 40 mm per frame (2200 mm
+    when it is in full view again at t = 66)."""
+    t_turn, z0, v = 38, 1800.0, 40.0
+    frames = []
+    for t in range(T):
+        colour, depth, mask = _toy(t, rng)
+        z = z0 + v * t if t <= t_turn else z0 + v * (2 * t_turn - t)
+        depth = np.where(mask, z + rng.normal(0, 15, mask.shape), depth).astype(np.uint16)
+        frames.append((colour, depth, mask))
+    colour = np.stack([f[0] for f in frames])
+    depth = np.stack([f[1] for f in frames])
+    gt = np.stack([_gt(f[2]) for f in frames])
+    return Frame(jnp.asarray(colour), jnp.asarray(depth)), gt
+
+
+def test_target_that_turns_back_while_hidden_is_found_again(toy):
+    """A target walking away turns round behind the occluder and comes back nearer than
+    where it was hidden. Its depth templates must not keep extrapolating the old velocity
+    while nothing is measured (``depth_velocity_fade``): stated, success rate >= 70 % over
+    the frames after it reappears in full, over three keys. With a velocity that
+    persists (fade 0.05), the templates end up more than 1 m behind the target, its own
+    pixels count as an occluder and that rate falls below 50 %."""
+    _, _, bg = toy
+    frames, gt = _reversal_toy(np.random.default_rng(3))
+    cfg = _config("grid-occlusion")
+    filt = build_rgbd_filter(cfg)
+    params = default_rgbd_params(cfg)
+    run = jax.jit(
+        jax.vmap(lambda k, p: track_boxes(filt, p, k, frames, gt[0], bg), in_axes=(0, None))
+    )
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    after = np.arange(T) >= 66
+    rates = {}
+    for fade in (float(params.depth_velocity_fade), 0.05):
+        boxes, lost = (
+            np.asarray(a) for a in run(keys, params._replace(depth_velocity_fade=jnp.float32(fade)))
+        )
+        rates[fade] = np.mean(
+            [
+                summarise(boxes[i][after], gt[after], np.ones(after.sum(), bool), lost[i][after])[
+                    "success_rate"
+                ]
+                for i in range(len(keys))
+            ]
+        )
+    default = float(params.depth_velocity_fade)
+    assert rates[default] >= 70.0, rates
+    assert rates[0.05] < 50.0, rates
+
+
 def test_depth_templates_ignore_nearer_occluder_pixels():
     # A cell 70 % covered by an occluder 550 mm nearer than the target: more than the
     # occluder margin (400 mm), but within the aged jump gate (400 + 60 x 5 mm). The

@@ -421,6 +421,27 @@ def test_occlusion_and_appearance_scenarios(name):
     assert not s.visible[full].any()
 
 
+def test_occlusion_return_reverses_in_depth_while_occluded():
+    s = make_sequence("occlusion_return", seed=0)
+    z = s.joints3d[:, _j(s, "torso"), 2]
+    turn = int(np.argmax(z))
+    # Walks away (about 1.7 m), turns round and comes back nearly as far.
+    assert 10 < turn < len(z) - 10
+    assert z[turn] - z[0] > 1500 and z[turn] - z[-1] > 1200
+    # The crossing person hides part of the walker around the turn, not at the ends.
+    occ = s.meta["occlusion"]
+    assert (occ[turn - 3 : turn + 4] > 0).all()
+    assert (occ[:5] == 0).all() and (occ[-5:] == 0).all()
+    # The empty-room background: what a background model of an empty room would hold.
+    bg_depth = s.meta["background_depth"]
+    assert bg_depth.shape == s.depth.shape[1:] and bg_depth.dtype == np.uint16
+    far = (s.depth[0] > 0) & (bg_depth > 0) & ~s.mask[0]
+    diff = np.abs(s.depth[0][far].astype(float) - bg_depth[far])
+    assert np.median(diff) < 20  # the room where the walker is not
+    person = s.mask[0] & (s.depth[0] > 0) & (bg_depth > 0)
+    assert np.median(bg_depth[person].astype(float) - s.depth[0][person]) > 500
+
+
 def test_shirt_colour_change():
     s = make_sequence("walk_across_medium", n_frames=8, shirt_change=(4, (40, 80, 200)))
     tor = np.rint(s.joints2d[:, _j(s, "torso")]).astype(int)
