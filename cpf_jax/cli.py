@@ -141,7 +141,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--background",
         default="25",
         help="background frames for the RGB-D models: N (evenly spaced over the "
-        "recording, default 25) or A:B (frames A..B-1, 0-based)",
+        "recording, default 25), A:B (frames A..B-1, 0-based) or 'empty' (a synthetic "
+        "scenario's empty room)",
     )
     p.add_argument(
         "--start",
@@ -288,7 +289,16 @@ def _run(args: argparse.Namespace) -> int:
         if args.sigma is not None:
             params = params._replace(sigma_rgb=jnp.float32(args.sigma))
         filt = build_rgbd_filter(config)
-        bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
+        if args.background == "empty":
+            empty = source.empty_background()
+            if empty is None:
+                raise UsageError(
+                    f"--background empty: {source.describe()} has no empty-scene frame "
+                    "(only synthetic scenarios do); give N or A:B"
+                )
+            bg_frames = [empty]
+        else:
+            bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
         background = jax.jit(median_background)(
             np.stack([f.colour for f in bg_frames]), np.stack([f.depth for f in bg_frames])
         )

@@ -18,8 +18,9 @@ Scenarios (columns), synthetic (``cpf_jax.synthetic``), every sequence
 
 Each sequence is tracked exactly as ``cpf-track`` would: the filter starts from the
 ground-truth box of frame 0, the background is the per-pixel median of 25 evenly
-spaced frames of the sequence (``occlusion_return``: the empty room, since its walker
-never uncovers the middle of the view), and frame 0 is scored. Metrics
+spaced frames of the sequence (``occlusion_return``: the empty room, ``cpf-track
+--background empty``, since its walker never uncovers the middle of the view), and
+frame 0 is scored. Metrics
 (``cpf_jax.metrics.summarise``): MOTP (px, centre distance of matched frames), MOTA
 (%), SA (px, size error of matched frames) and success rate (% of visible frames
 with IoU >= 0.5), averaged over scene seeds ``EVAL_SEEDS`` x filter keys. Scene seeds

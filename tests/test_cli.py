@@ -88,6 +88,7 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
         (["{folder}", "--layout", "12"], "--layout"),
         (["{folder}", "--layout", "0x3"], "--layout"),
         (["{folder}", "--model", "rgbd", "--contrast", "mixture"], "--model rgb"),
+        (["{folder}", "--model", "rgbd", "--background", "empty"], "empty-scene"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(folder, capsys, args, needle):
@@ -126,6 +127,23 @@ def test_otb_style_folder_with_invisible_frames(tmp_path, capsys):
     res = read_results(out)
     np.testing.assert_array_equal(res["frame"], np.arange(2, 8))
     assert "visible" in capsys.readouterr().out
+
+
+def test_rgbd_model_on_a_synthetic_scenario_with_its_empty_room(tmp_path, capsys):
+    # occlusion_return's walker never uncovers the middle of the view: the median of its
+    # frames would hold the walker, so the empty room is the background.
+    out = tmp_path / "r.csv"
+    argv = ["occlusion_return", "--model", "grid-occlusion", "--background", "empty"]
+    argv += ["--max-frames", "4", "--particles", "64", "--out", str(out), "--no-progress"]
+    assert main(argv) == 0
+    res = read_results(out)
+    assert len(res["frame"]) == 4
+    # The walker is in full view in these frames: a box on him, not lost.
+    seq = make_sequence("occlusion_return", seed=0)
+    from cpf_jax.kernels.boxes import iou
+
+    ious = np.asarray(iou(res["boxes"], seq.boxes[res["frame"]]))
+    assert np.all(ious > 0.5), ious
 
 
 def test_parse_box():

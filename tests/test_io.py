@@ -564,3 +564,16 @@ def test_read_results_drops_a_row_cut_short(tmp_path):
     path.write_text("a,b\n")
     with pytest.raises(SourceError, match="not a results file"):
         cio.read_results(path)
+
+
+def test_synthetic_source_empty_background():
+    from cpf_jax.io import open_synthetic
+
+    src = open_synthetic("occlusion_return")
+    bg = src.empty_background()
+    assert bg.colour.shape == (424, 512, 3) and bg.colour.dtype == np.uint8
+    assert bg.depth.shape == (424, 512) and bg.depth.dtype == np.uint16
+    # The empty room lies behind the walker of frame 0.
+    f0 = src.read(0)
+    person = src.sequence.mask[0] & (f0.depth > 0) & (bg.depth > 0)
+    assert np.median(bg.depth[person].astype(float) - f0.depth[person]) > 500

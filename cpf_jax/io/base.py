@@ -123,6 +123,12 @@ class FrameSource:
             self._size = (int(w), int(h))
         return self._size
 
+    def empty_background(self) -> Frame | None:
+        """A frame of the empty scene (no person), when the source has one (a synthetic
+        scenario's room); ``None`` otherwise. RGB-D models then use it as their
+        background instead of a median over the recording's frames."""
+        return None
+
     @property
     def first_visible(self) -> int | None:
         """Index of the first frame with a visible ground-truth box (or an init box: 0)."""

@@ -80,6 +80,13 @@ class SyntheticSource(FrameSource):
     def _read(self, i: int) -> Frame:
         return Frame(self._colour[i], self._depth[i])
 
+    def empty_background(self) -> Frame | None:
+        meta = getattr(self.sequence, "meta", None) or {}
+        colour, depth = meta.get("background_colour"), meta.get("background_depth")
+        if colour is None or depth is None:
+            return None
+        return Frame(np.asarray(colour, np.uint8), np.asarray(depth, np.uint16))
+
     def load_all(self, start: int = 0, stop: int | None = None) -> Recording:
         sel = np.arange(len(self))[start:stop]
         if sel.size == 0:
