@@ -444,13 +444,13 @@ def _reversal_toy(rng: np.random.Generator):
     return Frame(jnp.asarray(colour), jnp.asarray(depth)), gt
 
 
-def test_target_that_turns_back_while_hidden_is_found_again(toy):
+def test_velocity_fade_finds_a_target_that_turns_back_while_hidden(toy):
     """A target walking away turns round behind the occluder and comes back nearer than
-    where it was hidden. Its depth templates must not keep extrapolating the old velocity
-    while nothing is measured (``depth_velocity_fade``): stated, success rate >= 70 % over
-    the frames after it reappears in full, over three keys. With a velocity that
-    persists (fade 0.05), the templates end up more than 1 m behind the target, its own
-    pixels count as an occluder and that rate falls below 50 %."""
+    where it was hidden. Stated: with ``depth_velocity_fade`` 0.3 (the templates stop
+    extrapolating the old velocity while nothing is measured) the success rate over the
+    frames after it reappears in full is >= 70 % over three keys; with the default 0.05
+    the templates run on past the target, its own pixels count as an occluder and that
+    rate stays below 50 % (the known failure the default keeps; ``default_rgbd_params``)."""
     _, _, bg = toy
     frames, gt = _reversal_toy(np.random.default_rng(3))
     cfg = _config("grid-occlusion")
@@ -462,10 +462,9 @@ def test_target_that_turns_back_while_hidden_is_found_again(toy):
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     after = np.arange(T) >= 66
     rates = {}
-    for fade in (float(params.depth_velocity_fade), 0.05):
-        boxes, lost = (
-            np.asarray(a) for a in run(keys, params._replace(depth_velocity_fade=jnp.float32(fade)))
-        )
+    for fade in (0.3, float(params.depth_velocity_fade)):
+        p = params._replace(depth_velocity_fade=jnp.float32(fade))
+        boxes, lost = (np.asarray(a) for a in run(keys, p))
         rates[fade] = np.mean(
             [
                 summarise(boxes[i][after], gt[after], np.ones(after.sum(), bool), lost[i][after])[
@@ -474,9 +473,8 @@ def test_target_that_turns_back_while_hidden_is_found_again(toy):
                 for i in range(len(keys))
             ]
         )
-    default = float(params.depth_velocity_fade)
-    assert rates[default] >= 70.0, rates
-    assert rates[0.05] < 50.0, rates
+    assert rates[0.3] >= 70.0, rates
+    assert rates[float(params.depth_velocity_fade)] < 50.0, rates
 
 
 def test_depth_templates_ignore_nearer_occluder_pixels():
