@@ -14,7 +14,7 @@ Scenarios (columns), synthetic (``cpf_jax.synthetic``), every sequence
 * ``appearance_change``: ``appearance_change`` (red top -> green jacket at frame 50).
 * ``occlusion_return``: ``occlusion_return`` (the walker walks away, turns round while
   another person crosses in front, and comes back: a reversal in depth while hidden,
-  IST's second occlusion); 50 frames, its own length (a second compile per variant).
+  like IST's second occlusion); 50 frames, its own length (a second compile per variant).
 
 Each sequence is tracked exactly as ``cpf-track`` would: the filter starts from the
 ground-truth box of frame 0, the background is the per-pixel median of 25 evenly
