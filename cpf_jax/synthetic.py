@@ -263,8 +263,8 @@ SCENARIOS: dict[str, ScenarioSpec] = {
     ),
     # The walker walks away, turns round while a second person (another outfit) crosses
     # in front, and comes back towards the camera: a target that reverses its motion in
-    # depth while hidden (the IST recording's second occlusion). The crossing is timed to
-    # hide the far end of the walk (about frames 20-40).
+    # depth while hidden (like the IST recording's second occlusion). The crossing is
+    # timed to hide part of the walker around the turn (about frames 13-37, partially).
     "occlusion_return": ScenarioSpec(
         path="away_back",
         near_m=2.1,

@@ -55,6 +55,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cpf_jax.io import SyntheticSource
 from cpf_jax.kernels.background import foreground_mask, median_background
 from cpf_jax.metrics import summarise
 from cpf_jax.rgbd import (
@@ -117,9 +118,9 @@ def _sequence(name: str, seed: int, n_frames: int | None):
     n_frames = len(seq.colour)
     frames = Frame(jnp.asarray(seq.colour), jnp.asarray(seq.depth))
     if name in EMPTY_ROOM_BACKGROUND:
-        bg = _background_of(
-            seq.meta["background_colour"][None], seq.meta["background_depth"][None], [0]
-        )
+        # The frame ``cpf-track --background empty`` uses.
+        empty = SyntheticSource(seq, name).empty_background()
+        bg = _background_of(empty.colour[None], empty.depth[None], [0])
     else:
         bg = _background_of(seq.colour, seq.depth, np.linspace(0, n_frames - 1, 25).astype(int))
     return seq, frames, bg
