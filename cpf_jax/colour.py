@@ -131,6 +131,7 @@ from cpf_jax.kernels.histogram import (
     rect_reduce,
     rect_sums,
     suggest_window,
+    uses_window,
 )
 from cpf_jax.types import Filter, Frame
 
@@ -379,6 +380,9 @@ class ColourInfo(NamedTuple):
     lost: Array  # bool
     resampled: Array  # bool
     weights_invalid: Array  # bool, every log-weight was NaN/-inf
+    # bool: the particles' histograms came from the static window (config.window);
+    # False when there is none or the exact whole-frame fallback ran (slower).
+    windowed: Array
 
 
 def box_parts(boxes_xywh: Array, parts: int) -> Array:
@@ -811,6 +815,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             lost=lost,
             resampled=resampled,
             weights_invalid=invalid,
+            windowed=uses_window((height, width), rects, config.window, origin),
         )
         return new_state, info
 

@@ -21,9 +21,19 @@
     Windows).
 
 ``xla_cpu_flags(...)``
-    Builds an ``XLA_FLAGS`` string for the CPU backend (e.g. single-threaded
-    Eigen kernels); it only returns the string. Set it in the environment before
-    importing JAX yourself if you want it: the library never changes it.
+    Builds an ``XLA_FLAGS`` string for the CPU backend (single-threaded Eigen
+    kernels; no YNNPACK library fusions); it only returns the string. Set it in
+    the environment before importing JAX yourself if you want it: the library
+    never changes it.
+
+    ``library_fusions=False`` stops XLA:CPU (jax 0.10) from handing elementwise
+    chains and reductions to YNNPACK (``__ynn_fusion`` in the compiled HLO). In
+    the colour step, the per-chunk ``sqrt(counts) . sqrt(q)`` reduction ran as
+    such a fusion without XLA's outer-dimension split across the cores.
+    Measured on the 2-core AMD EPYC host (``experiments/bench_colour.py``,
+    same session, median of 40 steps): N = 1k 7.0 -> 6.6 ms, N = 10k 8.9 ->
+    8.6 ms, N = 100k 25.8 -> 23.7 ms. Other programs may gain or lose: time
+    yours.
 """
 
 from __future__ import annotations
@@ -43,6 +53,8 @@ _M_MMAP_MAX = -4
 _MMAP_THRESHOLD = 1 << 30
 _MMAP_THRESHOLD_CAP = 32 * 1024 * 1024
 _TRIM_THRESHOLD = 1 << 30
+#: XLA flag enabling no YNNPACK fusion type (an empty list).
+YNN_OFF_FLAG = "--xla_cpu_experimental_ynn_fusion_type="
 
 
 def _glibc():
@@ -87,17 +99,23 @@ def tune_malloc(
     return bool(ok)
 
 
-def xla_cpu_flags(*, single_threaded: bool = False, extra: str = "") -> str:
+def xla_cpu_flags(
+    *, single_threaded: bool = False, library_fusions: bool = True, extra: str = ""
+) -> str:
     """An ``XLA_FLAGS`` value for the CPU backend; returned, never applied.
 
     ``single_threaded=True`` turns off XLA's multi-threaded Eigen kernels
     (``--xla_cpu_multi_thread_eigen=false``), e.g. to run one process per core.
-    XLA's CPU intra-op pool otherwise uses every core. ``extra`` is appended as is.
-    Set the result as ``os.environ["XLA_FLAGS"]`` before importing JAX.
+    XLA's CPU intra-op pool otherwise uses every core. ``library_fusions=False``
+    enables no YNNPACK fusion type (``--xla_cpu_experimental_ynn_fusion_type=``;
+    see the module docstring). ``extra`` is appended as is. Set the result as
+    ``os.environ["XLA_FLAGS"]`` before importing JAX.
     """
     flags = []
     if single_threaded:
         flags.append("--xla_cpu_multi_thread_eigen=false")
+    if not library_fusions:
+        flags.append(YNN_OFF_FLAG)
     if extra:
         flags.append(extra)
     return " ".join(flags)

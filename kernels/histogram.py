@@ -115,6 +115,7 @@ __all__ = [
     "grid_sums",
     "window_origin",
     "window_covers",
+    "uses_window",
     "suggest_window",
     "DEFAULT_CHUNK",
     "rect_reduce",
@@ -600,10 +601,7 @@ def rect_reduce(
     if window is None:
         out = general(rects)
     else:
-        shape = (min(window[0], fh), min(window[1], fw))
-        if origin is None:
-            origin = window_origin(rects, shape, (fh, fw))
-        origin = jnp.asarray(origin, jnp.int32)
+        shape, origin = _window_placement(rects, window, origin, (fh, fw))
 
         def fast(rects):
             return _window_counts(
@@ -632,6 +630,38 @@ def rect_reduce(
 
 # Earlier private name, kept for callers that used it.
 _with_table = rect_reduce
+
+
+def _window_placement(rects, window, origin, frame_shape):
+    """The static window shape (capped at the frame) and its origin (default: the rects')."""
+    fh, fw = frame_shape
+    shape = (min(window[0], fh), min(window[1], fw))
+    if origin is None:
+        origin = window_origin(rects, shape, (fh, fw))
+    return shape, jnp.asarray(origin, jnp.int32)
+
+
+def uses_window(
+    frame_shape: tuple[int, int],
+    rects: Array,
+    window: tuple[int, int] | None,
+    origin: Array | None = None,
+    count_dtype=jnp.uint16,
+) -> Array:
+    """Whether ``rect_reduce`` with these arguments counts ``rects`` on the windowed path.
+
+    ``False`` when ``window`` is None or when the exact whole-frame fallback
+    runs (a rect outside the window or too large for the count dtype): the
+    same test ``rect_reduce`` makes, for reporting (a filter's step info) and
+    for sizing windows.
+    """
+    if window is None:
+        return jnp.asarray(False)
+    fh, fw = frame_shape
+    r = jnp.asarray(rects, jnp.int32)
+    r = clip_rect(r[None] if r.ndim == 1 else r, fw, fh)
+    shape, origin = _window_placement(r, window, origin, (fh, fw))
+    return window_covers(r, origin, shape, _check_count_dtype(count_dtype))
 
 
 # ----------------------------------------------------------------------------- histograms

@@ -230,6 +230,30 @@ def test_windowed_filter_tracks_with_and_without_containment(seq, contain):
     assert np.mean(np.asarray(iou(jnp.asarray(out), jnp.asarray(boxes)))) >= 0.6
 
 
+def test_info_reports_whether_the_window_path_ran(seq):
+    # A settled cloud is counted in the window; particles whose boxes outgrow the
+    # window take the exact whole-frame fallback and the step says so; without a
+    # window there is no windowed path. The estimate stays the same either way.
+    frames, boxes = seq
+    config = ColourConfig(n_particles=64).with_window((20, 50), (H, W))
+    filt = build_colour_filter(config)
+    f1 = Frame(frames.colour[1], frames.depth[1])
+    state = jax.jit(filt.init)(
+        PARAMS, jax.random.key(0), Frame(frames.colour[0], frames.depth[0]), boxes[0]
+    )
+    step = jax.jit(filt.step)
+    _, info = step(PARAMS, jax.random.key(1), state, f1)
+    assert bool(info.windowed)
+    big = state._replace(particles=state.particles.at[0, 5].set(config.window[0] + 10.0))
+    _, info_big = step(PARAMS, jax.random.key(1), big, f1)
+    assert not bool(info_big.windowed)
+    plain = build_colour_filter(ColourConfig(n_particles=64))
+    state = plain.init(
+        PARAMS, jax.random.key(0), Frame(frames.colour[0], frames.depth[0]), boxes[0]
+    )
+    assert not bool(jax.jit(plain.step)(PARAMS, jax.random.key(1), state, f1)[1].windowed)
+
+
 @pytest.mark.parametrize("window", [True, False], ids=["window", "whole-frame"])
 def test_estimate_distance_equals_a_direct_count(seq, window):
     # The estimate's histogram comes from the particles' integral table (rect_reduce

@@ -86,3 +86,22 @@ def test_xla_cpu_flags_only_returns_a_string(monkeypatch):
     import os
 
     assert "XLA_FLAGS" not in os.environ
+
+
+def test_library_fusions_flag_is_accepted_and_removes_ynn_fusions():
+    # This jaxlib must know the flag (XLA aborts on an unknown flag or value), and the
+    # compiled program of a sqrt-multiply-reduce (the colour step's per-chunk
+    # reduction) must then hold no YNNPACK fusion.
+    flags = cpu_tuning.xla_cpu_flags(library_fusions=False)
+    assert flags == cpu_tuning.YNN_OFF_FLAG
+    code = (
+        "import os; os.environ['XLA_FLAGS'] = " + repr(flags) + "\n"
+        "import jax, jax.numpy as jnp\n"
+        "f = jax.jit(lambda c, q: jnp.sum(jnp.sqrt(c) * q, axis=-1))\n"
+        "c = jnp.ones((4096, 2, 72)); q = jnp.ones((2, 72))\n"
+        "text = f.lower(c, q).compile().as_text()\n"
+        "print(float(f(c, q)[0, 0]), text.count('__ynn_fusion'))\n"
+    )
+    value, ynn = _run(code).split()
+    assert float(value) == 72.0
+    assert int(ynn) == 0

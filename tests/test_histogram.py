@@ -269,6 +269,36 @@ def test_without_fallback_counts_exactly_the_part_inside_the_window(frames):
     assert out[-1].sum() < _ref_hist(hsvs[0], wide[0]).sum()  # ... which is not the full rect
 
 
+def test_uses_window_is_the_path_rect_reduce_takes(frames):
+    # uses_window reports the fast path exactly when counting in the window alone is
+    # exact: compare fallback=False (window only) with calcHist on clouds that fit,
+    # stick out of the frame, or leave the window; no window means no fast path.
+    _, hsvs, bins = frames
+    cases = {
+        "fits": _cloud_rects(1)[1],
+        "frame edge": _cloud_rects(2, centre=(FW - 10, FH - 10), size=(60, 50))[1],
+        "leaves window": np.concatenate([_cloud_rects(4, n=16)[1], [[0, 100, FW, 140]]]),
+    }
+    seen = set()
+    for name, rects in cases.items():
+        rects = np.asarray(rects, np.int32)
+        fast = H.uses_window((FH, FW), jnp.asarray(rects), WINDOW)
+        exact = np.array_equal(np.asarray(_fast_nofb(bins[0], rects)), _ref_hists(hsvs[0], rects))
+        assert bool(fast) == exact, name
+        assert bool(fast) == _origin_and_covers(rects)[1], name
+        seen.add(bool(fast))
+    assert seen == {True, False}
+    # A given origin is used as is (here one that misses the cloud), a 1D rect works.
+    far = jnp.asarray([FH - WINDOW[0], FW - WINDOW[1]], jnp.int32)
+    assert not bool(H.uses_window((FH, FW), jnp.asarray(cases["fits"]), WINDOW, far))
+    assert bool(H.uses_window((FH, FW), jnp.asarray([5, 5, 20, 20]), WINDOW))
+    assert not bool(H.uses_window((FH, FW), jnp.asarray(cases["fits"]), None))
+    # Under jit and vmap (over clouds).
+    clouds = jnp.stack([jnp.asarray(cases["fits"][:17]), jnp.asarray(cases["leaves window"])])
+    got = jax.jit(jax.vmap(lambda r: H.uses_window((FH, FW), r, WINDOW)))(clouds)
+    assert list(np.asarray(got)) == [True, False]
+
+
 def test_uint16_limit_falls_back_and_int32_table_stays_fast(frames):
     _, hsvs, bins = frames
     # 100 x 96 = 9,600 px fits uint16; make the window big and a rect of >= 65,536 px.
