@@ -318,6 +318,7 @@ def _run(args: argparse.Namespace) -> int:
     lost = np.zeros(n_frames, bool)
     tracked = np.zeros(n_frames, bool)
     bar = Progress(n_track, label="tracking", interactive=False if args.no_progress else None)
+    n_steps = n_windowed = 0  # colour model: steps whose histograms came from the window
     try:
         state = None
         for i in range(start, stop):
@@ -337,6 +338,9 @@ def _run(args: argparse.Namespace) -> int:
                 # The RGB-D filters report the box to score (e.g. the visible part).
                 est = np.asarray(getattr(info, "report", info.estimate))
                 ess, is_lost = float(info.ess), bool(info.lost)
+                if hasattr(info, "windowed"):
+                    n_steps += 1
+                    n_windowed += bool(info.windowed)
             ms = (time.perf_counter() - t0) * 1000.0
             if not np.all(np.isfinite(est)):  # never write a NaN box
                 raise CpfJaxError(f"{source.names[i]}: the filter produced a non-finite box")
@@ -357,6 +361,12 @@ def _run(args: argparse.Namespace) -> int:
         f"tracked {n_track} frames of {source.describe()} with N={config.n_particles} "
         f"(model {args.model}{', depth registered' if calib is not None else ''})"
     )
+    if n_windowed < n_steps:
+        print(
+            f"note: {n_steps - n_windowed} of {n_steps} steps counted histograms on the whole "
+            "frame (exact, slower): particle boxes left the histogram window sized for the "
+            "initial box (ColourInfo.windowed)"
+        )
     if source.gt_boxes is not None:
         sel = tracked
         vis = None if source.visible is None else source.visible[sel]

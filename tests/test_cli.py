@@ -29,6 +29,7 @@ def test_tracks_folder_writes_csv_rrd_and_summary(folder, tmp_path, capsys):
     assert code == 0
     printed = capsys.readouterr().out
     assert "SR@0.5 %" in printed and f"tracked {N_FRAMES} frames" in printed
+    assert "whole frame" not in printed  # every step counted in the histogram window
     res = read_results(out)
     np.testing.assert_array_equal(res["frame"], np.arange(N_FRAMES))
     boxes = res["boxes"]
@@ -144,6 +145,17 @@ def test_rgbd_model_on_a_synthetic_scenario_with_its_empty_room(tmp_path, capsys
 
     ious = np.asarray(iou(res["boxes"], seq.boxes[res["frame"]]))
     assert np.all(ious > 0.5), ious
+
+
+def test_says_when_steps_left_the_histogram_window(capsys):
+    # A person walking towards the camera outgrows the window sized for the initial box:
+    # the run says how many steps counted on the whole frame instead.
+    assert main(["walk_towards", "--particles", "64", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    note = [line for line in printed.splitlines() if line.startswith("note: ")]
+    assert len(note) == 1 and "counted histograms on the whole frame" in note[0]
+    n_whole, n_steps = (int(v) for v in note[0].split()[1:4:2])
+    assert 0 < n_whole < n_steps == 29
 
 
 def test_parse_box():
