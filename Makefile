@@ -25,6 +25,7 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python experiments/bench_colour.py
 	$(BIN)/python experiments/bench_depth.py
+	$(BIN)/python experiments/bench_rgbd.py
 
 experiments: $(STAMP)
 	$(BIN)/python experiments/colour_tables.py

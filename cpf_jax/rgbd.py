@@ -197,7 +197,13 @@ from cpf_jax.kernels.cells import (
     side_cells,
     window_sums,
 )
-from cpf_jax.kernels.histogram import bhattacharyya, box_histograms, rect_reduce, suggest_window
+from cpf_jax.kernels.histogram import (
+    bhattacharyya,
+    box_histograms,
+    rect_reduce,
+    suggest_window,
+    uses_window,
+)
 from cpf_jax.types import Filter, Frame
 
 __all__ = [
@@ -619,6 +625,9 @@ class RGBDInfo(NamedTuple):
     target_occluded: Array  # bool: more than half of the cells voted occluded
     resampled: Array
     weights_invalid: Array
+    # bool: the particles' histograms came from the static window (config.window);
+    # False when there is none or the exact whole-frame fallback ran (slower).
+    windowed: Array
 
 
 # ----------------------------------------------------------------------------- flags
@@ -763,6 +772,9 @@ class CellTerms(NamedTuple):
     area: Array  # pixels of the cell inside the frame
     l_border: Array  # [N, 8] Beta log-densities of the border strips (inner t/b/l/r, outer)
     border_ratio: Array  # [N, 8] their ratios
+    # bool []: every rect was counted in the static window (False: no window, or
+    # the exact whole-frame fallback ran).
+    windowed: Array
 
 
 def cell_terms(
@@ -866,6 +878,7 @@ def cell_terms(
         area=area,
         l_border=l_border,
         border_ratio=strip_ratio,
+        windowed=uses_window((height, width), rects, config.window),
     )
 
 
@@ -1045,18 +1058,24 @@ def detector_draw(
 
     A (size, cell) pair, then the centre uniform inside the cell and the log-size
     uniform within half a step of the pair's size (so the sizes of neighbouring steps
-    tile log-size, and :func:`detector_log_density` is a plain look-up). Drawn in two
-    stages (size, then cell given size) to keep the categorical draws small.
+    tile log-size, and :func:`detector_log_density` is a plain look-up). The pairs are
+    drawn by inverse CDF over the whole map: ``O(S h w + n log(S h w))`` (per-particle
+    categorical draws cost ``n x S h w`` random numbers: 79 of 170 ms of an N = 1,000
+    grid-occlusion step on 2 CPU cores).
     """
     s = config.detector_stride
     hh, ww = shape
     si, sj = detector_scale_grid(config)
     step_w, step_h = config.detector_scale_step
-    k1, k2, k3 = jax.random.split(key, 3)
-    lm = log_map.reshape(len(si), hh * ww)
-    size_lp = jax.nn.logsumexp(lm, axis=-1)  # [S]
-    k = jax.random.categorical(k1, size_lp, shape=(n,))
-    cell = jax.random.categorical(k2, lm[k] - size_lp[k][:, None], axis=-1)
+    k1, k3 = jax.random.split(key)
+    mass = jnp.exp(log_map - jnp.max(log_map))  # [S * h * w], -inf -> 0
+    cdf = jnp.cumsum(mass)
+    v = jax.random.uniform(k1, (n,)) * cdf[-1]
+    pair = jnp.searchsorted(cdf, v, side="right")
+    # Float round-off can leave v at the very top: never land past the last pair with mass.
+    last = jnp.max(jnp.where(mass > 0, jnp.arange(mass.shape[0]), 0))
+    pair = jnp.minimum(pair, last)
+    k, cell = pair // (hh * ww), pair % (hh * ww)
     u = jax.random.uniform(k3, (n, 4))
     log_w = jnp.log(box_wh[0]) + (jnp.asarray(si, jnp.float32)[k] + u[:, 2] - 0.5) * step_w
     log_h = jnp.log(box_wh[1]) + (jnp.asarray(sj, jnp.float32)[k] + u[:, 3] - 0.5) * step_h
@@ -1663,6 +1682,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             target_occluded=target_occluded,
             resampled=resampled,
             weights_invalid=invalid,
+            windowed=terms.windowed,
         )
         return new_state, info
 
@@ -1689,6 +1709,7 @@ def _rgb_filter(config: RGBDConfig) -> Filter:
             target_occluded=jnp.array(False),
             resampled=ci.resampled,
             weights_invalid=ci.weights_invalid,
+            windowed=ci.windowed,
         )
         return state, info
 

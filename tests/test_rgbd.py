@@ -290,6 +290,13 @@ def test_scan_vmap_and_no_retracing(toy):
         )
     assert len(traces) == 1
     assert np.isfinite(np.asarray(info.report)).all() and info.vote.shape == (4,)
+    # The step says whether its histograms came from the window: a cloud around the
+    # person fits the 120 x 128 window; boxes as wide as the frame do not.
+    frame = Frame(frames.colour[4], frames.depth[4])
+    assert bool(info.windowed)
+    wide = state._replace(particles=state.particles.at[:, 0].set(W / 2).at[:, 4].set(float(W)))
+    assert not bool(jstep(params, jax.random.PRNGKey(9), wide, frame)[1].windowed)
+    assert len(traces) == 1
     short = Frame(frames.colour[:6], frames.depth[:6])
     keys = jax.random.split(jax.random.PRNGKey(5), 3)
     _, infos = jax.jit(jax.vmap(lambda k: track(filt, params, k, short, gt[0], bg)))(keys)
@@ -448,7 +455,8 @@ def test_velocity_fade_finds_a_target_that_turns_back_while_hidden(toy):
     """A target walking away turns round behind the occluder and comes back nearer than
     where it was hidden. Stated: with ``depth_velocity_fade`` 0.3 (the templates stop
     extrapolating the old velocity while nothing is measured) the success rate over the
-    frames after it reappears in full is >= 70 % over three keys; with the default 0.05
+    frames after it reappears in full is >= 70 % over six keys (measured 83 %: one key in
+    six misses it); with the default 0.05
     the templates run on past the target, its own pixels count as an occluder and that
     rate stays below 50 % (the known failure the default keeps; ``default_rgbd_params``)."""
     _, _, bg = toy
@@ -459,7 +467,7 @@ def test_velocity_fade_finds_a_target_that_turns_back_while_hidden(toy):
     run = jax.jit(
         jax.vmap(lambda k, p: track_boxes(filt, p, k, frames, gt[0], bg), in_axes=(0, None))
     )
-    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    keys = jax.random.split(jax.random.PRNGKey(0), 6)
     after = np.arange(T) >= 66
     rates = {}
     for fade in (0.3, float(params.depth_velocity_fade)):
