@@ -266,20 +266,7 @@ def time_jax_step(n: int, box_wh, frame, repeats: int, variant: str = "default")
     step, init, _ = make_colour_step(n, box_wh, variant=variant)
     frame_j = _frame(frame)
     key = jax.random.key(0)
-    state = init(key, frame_j, xywh)
-    # Warm-up: compile, let the cloud settle onto the target and the allocator
-    # reach its steady state (the first ~10 calls still grow the heap). Not timed.
-    for i in range(WARMUP):
-        state, _ = step(jax.random.fold_in(key, i), state, frame_j)
-    jax.block_until_ready(state)
-    times, windowed = [], 0
-    for i in range(repeats):
-        k = jax.random.fold_in(key, 1000 + i)
-        t0 = time.perf_counter()
-        state, info = step(k, state, frame_j)
-        jax.block_until_ready((state, info))
-        times.append(time.perf_counter() - t0)
-        windowed += bool(info.windowed)
+    times, windowed, info = timed_steps(step, init(key, frame_j, xywh), frame_j, key, repeats)
     ms = _median_ms(times)
     return {
         "ms_per_frame": ms,
@@ -287,8 +274,31 @@ def time_jax_step(n: int, box_wh, frame, repeats: int, variant: str = "default")
         "final_ess": float(info.ess),
         # Share of the timed steps on the windowed path (the rest ran the exact
         # whole-frame fallback: particle boxes outgrew the window).
-        "windowed": windowed / repeats,
+        "windowed": windowed,
     }
+
+
+def timed_steps(step, state, frame, key, repeats: int, warmup: int = WARMUP):
+    """Wall times (s) of ``repeats`` jitted ``step(key, state, frame)`` calls, the share of
+    them whose info says ``windowed``, and the last info.
+
+    ``warmup`` untimed steps first: compile, let the cloud settle onto the target
+    and the allocator reach its steady state (the first ~10 calls still grow the
+    heap). Step keys: ``fold_in(key, i)`` while warming up, ``fold_in(key, 1000 + i)``
+    timed.
+    """
+    for i in range(warmup):
+        state, _ = step(jax.random.fold_in(key, i), state, frame)
+    jax.block_until_ready(state)
+    times, windowed = [], 0
+    for i in range(repeats):
+        k = jax.random.fold_in(key, 1000 + i)
+        t0 = time.perf_counter()
+        state, info = step(k, state, frame)
+        jax.block_until_ready((state, info))
+        times.append(time.perf_counter() - t0)
+        windowed += bool(info.windowed)
+    return times, windowed / repeats, info
 
 
 def time_opencv(n: int, frame, repeats: int, bins=H.DEFAULT_BINS) -> float:

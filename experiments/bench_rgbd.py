@@ -63,6 +63,7 @@ import json  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import bench_colour  # noqa: E402  (same folder: the timing loop and CPU name)
 import cv2  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -107,17 +108,7 @@ def time_step(variant: str, n: int, scene, repeats: int) -> dict:
     step = jax.jit(lambda k, s, f: filt.step(params, k, s, f))
     key = jax.random.key(0)
     state = jax.jit(lambda k, f, b: filt.init(params, k, f, b, bg))(key, first, jnp.asarray(box))
-    for i in range(WARMUP):
-        state, info = step(jax.random.fold_in(key, i), state, frame)
-    jax.block_until_ready(state)
-    times, windowed = [], 0
-    for i in range(repeats):
-        k = jax.random.fold_in(key, 1000 + i)
-        t0 = time.perf_counter()
-        state, info = step(k, state, frame)
-        jax.block_until_ready((state, info))
-        times.append(time.perf_counter() - t0)
-        windowed += bool(info.windowed)
+    times, windowed, info = bench_colour.timed_steps(step, state, frame, key, repeats, WARMUP)
     ms = float(np.median(times) * 1e3)
     return {
         "ms_per_frame": ms,
@@ -125,7 +116,7 @@ def time_step(variant: str, n: int, scene, repeats: int) -> dict:
         "ess": float(info.ess),
         # Share of the timed steps whose histograms came from the window (the rest
         # ran the exact whole-frame fallback: some particle rect left the window).
-        "windowed": windowed / repeats,
+        "windowed": windowed,
     }
 
 
@@ -242,8 +233,6 @@ def _markdown(results: dict) -> str:
 
 
 def main(args) -> dict:
-    import bench_colour  # the CPU name helper; same folder
-
     scene = _scene()
     repeats = 5 if args.quick else args.repeats
     ns = tuple(n for n in N_ALL if not args.quick or n <= 1_000)
