@@ -322,8 +322,8 @@ def to_markdown(table: dict, ist: dict | None, meta: dict) -> str:
         ]
         for v, s in table[sc].items():
             lines.append(
-                f"| {v} | {s['motp']:.1f} | {s['mota']:.1f} | {s['mota_min']:.1f} | "
-                f"{s['sa']:.1f} | {s['success_rate']:.1f} |"
+                f"| {v} | {s['motp']:.1f} | {s['mota']:.1f} | {s['mota_min']:.1f} | {s['sa']:.1f} | "
+                f"{s['success_rate']:.1f} |"
             )
         lines.append("")
     lines += ["## IST images1 (real RGB-D, frames 52-108, GT in 52-90)", ""]
