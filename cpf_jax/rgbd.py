@@ -567,7 +567,7 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         # until a fade that holds on both is found. (Those tables had one key per
         # seed: a new random stream alone later moved 96.7 to 87.3. Decide again on
         # several keys.)
-        depth_velocity_fade=f(0.3),
+        depth_velocity_fade=f(0.05),
         depth_speed=f(60.0),
         spread_rate=f(0.15),
         spread_max=f(3.0),
@@ -1245,23 +1245,12 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         """Mean of the known cell depth templates (mm; 0 when none is known)."""
         return mean_known_depth(state.depth_template)
 
-    def target_gate(
-        params: RGBDParams, state: RGBDState, target_z: Array, drift: bool = True
-    ) -> Array:
-        """Depth tolerance (mm) of "a pixel of the target": wider the longer it was hidden
-        or its templates stale, as it may have walked ``depth_speed`` mm per frame (up to
-        ``search_drift_max``; ``drift=False``: the tolerance of fresh templates)."""
-        base = jnp.maximum(params.recovery_gate, params.recovery_gate_rel * target_z)
-        return base + search_drift(params, state) if drift else base
-
-    def search_drift(params: RGBDParams, state: RGBDState) -> Array:
-        """How far (mm) the target may have moved in depth since its templates last learned:
-        ``depth_speed`` per frame hidden or stale, up to ``search_drift_max``. Staleness
-        counts too: a target found again by colour while its templates are off keeps the
-        wide gate until they learn its depth (one frame found must not shrink it)."""
-        stale = jnp.min(jnp.where(state.depth_template > 0, state.depth_age, 100.0))
-        hidden_for = jnp.maximum(state.occluded_frames.astype(jnp.float32), stale)
-        return jnp.minimum(params.depth_speed * hidden_for, params.search_drift_max)
+    def target_gate(params: RGBDParams, state: RGBDState, target_z: Array) -> Array:
+        """Depth tolerance (mm) of "a pixel of the target": wider the longer it was hidden,
+        as it may have walked ``depth_speed`` mm per frame (up to ``search_drift_max``)."""
+        hidden_for = state.occluded_frames.astype(jnp.float32)
+        drift = jnp.minimum(params.depth_speed * hidden_for, params.search_drift_max)
+        return jnp.maximum(params.recovery_gate, params.recovery_gate_rel * target_z) + drift
 
     def recovery_draw(
         key: Array, params: RGBDParams, state: RGBDState, obs: _Observation, depth: Array
@@ -1411,9 +1400,8 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
 
     def target_extent(
         params: RGBDParams, state: RGBDState, obs: _Observation, depth: Array, est: Array
-    ) -> tuple[Array, Array, Array]:
-        """Tight box ``[4]`` of the target's pixels around the estimate, their coverage, and
-        the coverage of those at the templates' depth (the gate without the drift).
+    ) -> Array:
+        """Tight box ``[4]`` of the target's pixels around the estimate, and their coverage.
 
         Target pixels: foreground within ``max(recovery_gate, recovery_gate_rel * z)``
         of the depth template ``z`` (nearer pixels belong to an occluder);
@@ -1421,8 +1409,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         ``report_margin`` per side. Columns / rows with fewer than
         ``report_min_pixels`` of them are ignored (isolated noise). The estimate
         itself when no target pixel is found. ``coverage``: target pixels found /
-        the estimate's area (about 0 when the target is hidden); ``held``: the same
-        with the gate of fresh templates (the target is where its templates expect it).
+        the estimate's area (about 0 when the target is hidden).
         """
         height, width = depth.shape
         target_z = target_depth(state)
@@ -1440,8 +1427,6 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         rows = jnp.arange(height, dtype=jnp.float32) + 0.5
         inside = ((rows >= y0) & (rows < y1))[:, None] & ((cols >= x0) & (cols < x1))[None]
         t = (like & inside).astype(jnp.float32)
-        tight = jnp.abs(z - target_z) < target_gate(params, state, target_z, drift=False)
-        held = jnp.sum(t * tight) / jnp.maximum(est[2] * est[3], 1.0)
         # A column / row counts when it and its two neighbours hold report_min_pixels
         # target pixels: isolated noise pixels drop out, a 1 px wide arm or leg (a sliver
         # at an occluder's edge, one pixel per row) stays.
@@ -1454,7 +1439,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         bx1 = jnp.max(jnp.where(col_n, cols + 0.5, -big))
         by0 = jnp.min(jnp.where(row_n, rows - 0.5, big))
         by1 = jnp.max(jnp.where(row_n, rows + 0.5, -big))
-        return jnp.where(ok, jnp.stack([bx0, by0, bx1 - bx0, by1 - by0]), est), coverage, held
+        return jnp.where(ok, jnp.stack([bx0, by0, bx1 - bx0, by1 - by0]), est), coverage
 
     def step(
         params: RGBDParams, key: Array, state: RGBDState, frame: Frame
@@ -1571,7 +1556,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         vote = w @ p_cell  # [C]
         voted = vote > params.vote_threshold
         target_occluded = jnp.mean(voted.astype(jnp.float32)) > 0.5
-        extent, coverage, held = target_extent(params, state, obs, frame.depth, est)
+        extent, coverage = target_extent(params, state, obs, frame.depth, est)
         # Nothing at the target's depth in or around the estimate: the target is hidden
         # (or lost), whatever the cells' votes say.
         hidden = coverage < params.min_coverage
@@ -1598,14 +1583,9 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             # the predicted target depth by more than the occluder margin (an occluder
             # covering half a cell would otherwise become the cell's median).
             z_pred = target_depth(state)
-            # Stale templates (the target was hidden and may have moved): when nothing is
-            # seen at their depth, the target found nearer within the search drift is the
-            # target, not an occluder, and they learn its depth.
-            drift = search_drift(params, state)
             near_cut = z_pred - jnp.maximum(
                 params.occluder_margin, params.occluder_margin_rel * z_pred
             )
-            near_cut = near_cut - jnp.where(held < params.min_coverage, drift, 0.0)
             z_frame = frame.depth.astype(jnp.float32)
             gated = obs._replace(
                 depth_bins=jnp.where(
@@ -1634,9 +1614,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             # occluder margin is an occluder, not the target (P: "depth decides").
             jump = jnp.abs(med - depth_template) < (
                 jnp.maximum(params.occluder_margin, params.occluder_margin_rel * depth_template)
-                + jnp.maximum(
-                    jnp.minimum(params.depth_speed * state.depth_age, params.max_drift), drift
-                )
+                + jnp.minimum(params.depth_speed * state.depth_age, params.max_drift)
             )
             d_ok = ok & (total >= config.min_depth_count) & ((depth_template <= 0) | jump)
             updated = jnp.where(
