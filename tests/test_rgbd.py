@@ -470,10 +470,16 @@ def test_velocity_fade_finds_a_target_that_turns_back_while_hidden(toy):
     keys = jax.random.split(jax.random.PRNGKey(0), 6)
     after = np.arange(T) >= 66
     rates = {}
-    for fade in (0.3, float(params.depth_velocity_fade)):
-        p = params._replace(depth_velocity_fade=jnp.float32(fade))
+    variants = {
+        "default": params,
+        "fade 0.05": params._replace(depth_velocity_fade=jnp.float32(0.05)),
+        "fade 0.05, no drift": params._replace(
+            depth_velocity_fade=jnp.float32(0.05), search_drift_max=jnp.float32(0.0)
+        ),
+    }
+    for name, p in variants.items():
         boxes, lost = (np.asarray(a) for a in run(keys, p))
-        rates[fade] = np.mean(
+        rates[name] = np.mean(
             [
                 summarise(boxes[i][after], gt[after], np.ones(after.sum(), bool), lost[i][after])[
                     "success_rate"
@@ -481,39 +487,73 @@ def test_velocity_fade_finds_a_target_that_turns_back_while_hidden(toy):
                 for i in range(len(keys))
             ]
         )
-    assert rates[0.3] >= 70.0, rates
-    assert rates[float(params.depth_velocity_fade)] < 50.0, rates
+    print(rates)
+    assert rates["default"] >= 70.0, rates
+    assert rates["fade 0.05"] >= 70.0, rates
+    assert rates["fade 0.05, no drift"] < 50.0, rates
+
+
+TEMPLATE_BOX = (40, 20, 40, 80)
+
+
+def _step_with_templates(depth_of_box: np.ndarray, age: float):
+    """One grid-occlusion step on a red box (depth ``depth_of_box``, [h, w] mm) on grey,
+    from a state whose depth templates all sit at ``Z_PERSON``, ``age`` frames old, with
+    no depth velocity. Returns ``(new_state, info)``."""
+    cfg = _config("grid-occlusion", detector_fraction=0.0, recovery_fraction=0.0)
+    filt = build_rgbd_filter(cfg)
+    params = default_rgbd_params(cfg)._replace(depth_velocity_rate=jnp.float32(0.0))
+    colour = np.full((H, W, 3), 100, np.uint8)
+    depth = np.full((H, W), Z_BG, np.uint16)
+    x, y, w, h = TEMPLATE_BOX
+    colour[y : y + h, x : x + w] = (200, 40, 40)
+    depth[y : y + h, x : x + w] = depth_of_box
+    bg = median_background(
+        jnp.asarray(np.full((1, H, W, 3), 100, np.uint8)),
+        jnp.asarray(np.full((1, H, W), Z_BG, np.uint16)),
+    )
+    frame = Frame(jnp.asarray(colour), jnp.asarray(depth))
+    box = jnp.asarray(TEMPLATE_BOX, jnp.float32)
+    state = filt.init(params, jax.random.PRNGKey(0), frame, box, bg)
+    c = cfg.n_cells
+    state = state._replace(
+        depth_template=jnp.full((c,), float(Z_PERSON)),
+        depth_age=jnp.full((c,), age),
+        depth_velocity=jnp.float32(0.0),
+        vote=jnp.zeros((c,)),
+    )
+    return jax.jit(filt.step)(params, jax.random.PRNGKey(1), state, frame)
+
+
+@pytest.mark.parametrize("age", [0.0, 15.0])
+def test_stale_templates_learn_a_target_found_nearer(age):
+    # The target reappears 1000 mm nearer than its templates, nothing at their depth.
+    # Fresh templates (age 0): that is more than the occluder margin, an occluder; they
+    # must not learn it. Stale ones (15 frames, the target may have walked 60 x 15 mm):
+    # the gate and the occluder cut widen (search_drift) and they learn its depth; else
+    # the target stays "hidden" behind its own pixels (occlusion_box, rgbd docstring).
+    _, _, w, h = TEMPLATE_BOX
+    found = Z_PERSON - 1000
+    new, info = _step_with_templates(np.full((h, w), found, np.uint16), age)
+    tmpl = np.asarray(new.depth_template)
+    if age == 0.0:
+        assert np.all(np.abs(tmpl - Z_PERSON) < 120), tmpl
+    else:
+        # depth_rate 0.5: half way to the found depth in one step.
+        assert not bool(info.lost)
+        assert np.all(np.abs(tmpl - (Z_PERSON + found) / 2) < 120), tmpl
 
 
 def test_depth_templates_ignore_nearer_occluder_pixels():
     # A cell 70 % covered by an occluder 550 mm nearer than the target: more than the
     # occluder margin (400 mm), but within the aged jump gate (400 + 60 x 5 mm). The
     # cell's median is the occluder's; the template must learn from the target's pixels
-    # only (depth decides), so it stays at the target's depth.
-    cfg = _config("grid-occlusion", detector_fraction=0.0, recovery_fraction=0.0)
-    filt = build_rgbd_filter(cfg)
-    params = default_rgbd_params(cfg)._replace(depth_velocity_rate=jnp.float32(0.0))
-    colour = np.full((H, W, 3), 100, np.uint8)
-    depth = np.full((H, W), Z_BG, np.uint16)
-    x, y, w, h = 40, 20, 40, 80
-    colour[y : y + h, x : x + w] = (200, 40, 40)
-    depth[y : y + h, x : x + w] = Z_PERSON
-    near = Z_PERSON - 550
-    depth[y : y + h, x : x + int(0.7 * w)] = near  # the left cells, and 40 % of the right ...
-    bg = median_background(
-        jnp.asarray(np.full((1, H, W, 3), 100, np.uint8)),
-        jnp.asarray(np.full((1, H, W), Z_BG, np.uint16)),
-    )
-    frame = Frame(jnp.asarray(colour), jnp.asarray(depth))
-    box = jnp.asarray([x, y, w, h], jnp.float32)
-    state = filt.init(params, jax.random.PRNGKey(0), frame, box, bg)
-    c = cfg.n_cells
-    state = state._replace(
-        depth_template=jnp.full((c,), float(Z_PERSON)),
-        depth_age=jnp.full((c,), 5.0),
-        vote=jnp.zeros((c,)),
-    )
-    new, _ = jax.jit(filt.step)(params, jax.random.PRNGKey(1), state, frame)
+    # only (depth decides), so it stays at the target's depth. The target is seen at
+    # its templates' depth, so the occluder cut does not widen with their age.
+    _, _, w, h = TEMPLATE_BOX
+    box_depth = np.full((h, w), Z_PERSON, np.uint16)
+    box_depth[:, : int(0.7 * w)] = Z_PERSON - 550  # the left cells, and 40 % of the right ...
+    new, _ = _step_with_templates(box_depth, 5.0)
     tmpl = np.asarray(new.depth_template)
     # ... so that the two left cells (of a 2x2 grid) are all occluder where they are
     # near, and the rest is target: no template may move towards the occluder's depth.
