@@ -1287,11 +1287,14 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         it)."""
         tight = jnp.abs(z - target_z) < target_gate(params, state, target_z, drift=False)
         wide = jnp.abs(z - target_z) < target_gate(params, state, target_z)
+        return tight | (wide & ~at_occluder(params, state, z)), tight
+
+    def at_occluder(params: RGBDParams, state: RGBDState, z: Array) -> Array:
+        """Depths ``z`` within ``max(recovery_gate, recovery_gate_rel * d)`` of the
+        remembered occluder depth ``d`` (all False while none is known)."""
         occ = state.occluder_depth
-        at_occluder = (occ > 0) & (
-            jnp.abs(z - occ) < jnp.maximum(params.recovery_gate, params.recovery_gate_rel * occ)
-        )
-        return tight | (wide & ~at_occluder), tight
+        gate = jnp.maximum(params.recovery_gate, params.recovery_gate_rel * occ)
+        return (occ > 0) & (jnp.abs(z - occ) < gate)
 
     def search_drift(params: RGBDParams, state: RGBDState) -> Array:
         """How far (mm) the target may have moved in depth since its templates last learned:
@@ -1652,8 +1655,10 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             # occluder, and they learn its depth.
             drift = search_drift(params, state)
             z_frame = frame.depth.astype(jnp.float32)
-            like, _ = target_like(params, state, z_frame, z_pred)
-            cut = (z_frame < near_cut) & ((held >= params.min_coverage) | ~like)
+            widen = held < params.min_coverage
+            cut = (z_frame < near_cut - jnp.where(widen, drift, 0.0)) | (
+                widen & (z_frame < near_cut) & at_occluder(params, state, z_frame)
+            )
             gated = obs._replace(
                 depth_bins=jnp.where((z_pred > 0) & (z_frame > 0) & cut, -1, obs.depth_bins)
             )
