@@ -126,7 +126,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="PRNG seed")
     p.add_argument("--out", help="write frame,x,y,w,h rows (CSV) as the run goes")
     p.add_argument("--rrd", help="write a Rerun recording to this .rrd file")
-    p.add_argument("--dynamics", choices=MODELS, default="ar1", help="motion model")
+    p.add_argument(
+        "--dynamics",
+        choices=MODELS,
+        help="motion model (default: random_walk for --model rgb, ar1 for the RGB-D models)",
+    )
     p.add_argument(
         "--model",
         choices=("rgb", "rgbd", "grid", "grid-occlusion"),
@@ -249,6 +253,8 @@ def _run(args: argparse.Namespace) -> int:
     config_kw = {}
     if args.bins is not None:
         config_kw["bins"] = parse_bins(args.bins)
+    if args.dynamics is not None:  # else each config's own default
+        config_kw["model"] = args.dynamics
     colour_kw = {}
     if args.contrast is not None:
         colour_kw["contrast"] = args.contrast
@@ -261,7 +267,6 @@ def _run(args: argparse.Namespace) -> int:
     if args.model == "rgb":
         config = ColourConfig(
             n_particles=args.particles,
-            model=args.dynamics,
             hierarchical=not args.no_hierarchical,
             estimator=args.estimator,
             resampler=args.resampler,
@@ -280,7 +285,6 @@ def _run(args: argparse.Namespace) -> int:
         config = RGBDConfig(
             variant=args.model,
             n_particles=args.particles,
-            model=args.dynamics,
             hierarchical=not args.no_hierarchical,
             resampler=args.resampler,
             **config_kw,

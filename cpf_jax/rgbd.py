@@ -401,7 +401,9 @@ class RGBDConfig:
 
     @property
     def colour_config(self) -> ColourConfig:
-        base = self.colour or ColourConfig(n_particles=self.n_particles)
+        base = self.colour or ColourConfig(
+            n_particles=self.n_particles, model=self.model, hierarchical=self.hierarchical
+        )
         return dataclasses.replace(base, window=self.window) if self.window else base
 
     def with_window(

@@ -321,6 +321,12 @@ def test_rgb_variant_is_the_colour_filter(toy):
     )
     np.testing.assert_allclose(np.asarray(rgbd_boxes), np.asarray(colour_boxes), atol=1e-4)
     assert isinstance(cfg.colour_config, ColourConfig)
+    # Its motion model is the RGB-D config's (ar1 by default), not the colour layer's
+    # own default (random_walk), so the four variants move their particles alike.
+    assert cfg.model == "ar1" and cfg.colour_config.model == "ar1"
+    assert ColourConfig().model == "random_walk"
+    other = RGBDConfig(variant="rgb", model="ar2", hierarchical=False).colour_config
+    assert (other.model, other.hierarchical) == ("ar2", False)
 
 
 def test_spreading_while_occluded(toy):
