@@ -68,15 +68,18 @@ them against the default in ``likelihood_terms``):
   Histograms are blind to where colours sit inside the box; when the clothes'
   colours are also the background's (a dark jacket on a dark road, OTB
   Crossing), the histogram terms prefer a box on the legs alone and only the
-  layout pins the box's vertical extent. Measured with the ring correction above
-  (N = 100, colour_tables.py, 2026-11-24): on Crossing it raises the success
-  rate from 46 to 76 % (AUC 48 -> 59); on the synthetic walking scenes the mean
-  falls from 97.3 to 95.2 and the worst scenario from 93.5 to 83.6
-  (walk_across_fast; gait and the passing background change the box's
-  luminance pattern). On the training scenes (seeds 100+, where the defaults
-  were chosen) it cost walk-across 6-8 points, hence off by default. The
-  mixture contrast alone scores 65.5 / 22.2 (mean / worst) and mixture + layout
-  (contrast_weight 5, layout_weight 20) 92.0 / 82.8 with Crossing 88.0 / 62.3.
+  layout pins the box's vertical extent. Measured with the random-walk default
+  (N = 100, colour_tables.py ``likelihood_terms``, 2026-11-24; walking mean /
+  worst scenario, then Crossing success rate / AUC): default 98.3 / 96.6 and
+  60.8 / 55.4; layout 12x3 at ``layout_weight`` 10 99.1 / 98.1 and 95.7 / 67.0;
+  at 20 96.5 / 91.4 and 99.2 / 69.4; at 40 89.5 / 74.4 and 96.8 / 70.4. The
+  mixture contrast alone scores 71.3 / 37.9 and 66.7 / 57.0; mixture + layout
+  (contrast_weight 5, layout_weight 20) 98.0 / 94.9 and 99.0 / 70.8. Off by
+  default for two reasons: on the training scenes (seeds 100-105, where the
+  defaults are chosen) layout at weight 10 costs the walk-across scenes 0-1.5
+  points and heavier weights more; and its (rows + 1) x (cols + 1) corner
+  gathers per particle add 40 % to the step at N = 10,000 and 2.5x at N =
+  100,000 (experiments/bench_colour.py, "layout" column).
 
 Bins: 8 x 8 H-S bins for chromatic pixels plus 8 value bins for achromatic
 (dark, grey, white) pixels whose hue is noise (``kernels.color.hsv_bin_index``);
