@@ -827,7 +827,7 @@ def cell_terms(
     drift = (
         0.0 if depth_age is None else jnp.minimum(params.depth_speed * depth_age, params.max_drift)
     )
-    margin = jnp.maximum(params.occluder_margin, params.occluder_margin_rel * mu) + drift
+    margin = occluder_margin(params, mu) + drift
     near_thr = mu - margin
     if config.border > 0:
         # The strips ride along in the same table passes; their colour distance is unused.
@@ -961,6 +961,18 @@ def motion_position_log_density(
     guided = _gauss2_log_density(d, cxx, cxy, cyy)
     g = jnp.clip(m.guided_fraction, 0.0, 1.0)
     return jnp.logaddexp(_log_clip(1.0 - g) + plain, _log_clip(g) + guided)
+
+
+def occluder_margin(params: RGBDParams, z: Array) -> Array:
+    """How much nearer (mm) than depth ``z`` a pixel or cell median must be to count as
+    an occluder: ``max(occluder_margin, occluder_margin_rel * z)``."""
+    return jnp.maximum(params.occluder_margin, params.occluder_margin_rel * z)
+
+
+def depth_tolerance(params: RGBDParams, z: Array) -> Array:
+    """Depth tolerance (mm) of "a pixel at depth ``z``" for fresh templates:
+    ``max(recovery_gate, recovery_gate_rel * z)``."""
+    return jnp.maximum(params.recovery_gate, params.recovery_gate_rel * z)
 
 
 def mean_known_depth(depth_template: Array) -> Array:
@@ -1276,7 +1288,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         """Depth tolerance (mm) of "a pixel of the target": wider the longer it was hidden
         or its templates stale, as it may have walked ``depth_speed`` mm per frame (up to
         ``search_drift_max``; ``drift=False``: the tolerance of fresh templates)."""
-        base = jnp.maximum(params.recovery_gate, params.recovery_gate_rel * target_z)
+        base = depth_tolerance(params, target_z)
         return base + search_drift(params, state) if drift else base
 
     def target_like(
@@ -1295,7 +1307,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         """Depths ``z`` within ``max(recovery_gate, recovery_gate_rel * d)`` of the
         remembered occluder depth ``d`` (all False while none is known)."""
         occ = state.occluder_depth
-        gate = jnp.maximum(params.recovery_gate, params.recovery_gate_rel * occ)
+        gate = depth_tolerance(params, occ)
         return (occ > 0) & (jnp.abs(z - occ) < gate)
 
     def search_drift(params: RGBDParams, state: RGBDState) -> Array:
@@ -1622,7 +1634,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         # than the templates by more than the occluder margin (``target_like``).
         est_hist, est_med, _ = _cell_templates(config, obs, est)
         z_pred = target_depth(state)
-        near_cut = z_pred - jnp.maximum(params.occluder_margin, params.occluder_margin_rel * z_pred)
+        near_cut = z_pred - occluder_margin(params, z_pred)
         occ_cell = (z_pred > 0) & (est_med > 0) & (est_med < near_cut)
         occluder_depth = jnp.where(
             jnp.any(occ_cell),
@@ -1685,7 +1697,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             # Depth templates learn gradual changes only: a jump larger than the
             # occluder margin is an occluder, not the target (P: "depth decides").
             jump = jnp.abs(med - depth_template) < (
-                jnp.maximum(params.occluder_margin, params.occluder_margin_rel * depth_template)
+                occluder_margin(params, depth_template)
                 + jnp.maximum(
                     jnp.minimum(params.depth_speed * state.depth_age, params.max_drift), drift
                 )
