@@ -173,7 +173,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--layout",
         default=None,
-        help="--model rgb: luminance layout term on a RxC grid, e.g. 12x3 (default off)",
+        help="--model rgb: layout term on a RxC grid, e.g. 12x3 (default off)",
+    )
+    p.add_argument(
+        "--layout-feature",
+        choices=("luminance", "gradient"),
+        default=None,
+        help="--model rgb: what the layout cells hold: mean luminance (default) or "
+        "gradient energy in 4 orientations",
+    )
+    p.add_argument(
+        "--layout-weight",
+        type=float,
+        default=None,
+        help="--model rgb: weight of the layout term (default 10)",
     )
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -260,8 +273,14 @@ def _run(args: argparse.Namespace) -> int:
         colour_kw["contrast"] = args.contrast
     if args.layout is not None:
         colour_kw["layout"] = parse_layout(args.layout)
-    if colour_kw and args.model != "rgb":
-        raise UsageError(f"--contrast and --layout apply to --model rgb, not {args.model!r}")
+    if args.layout_feature is not None:
+        colour_kw["layout_feature"] = args.layout_feature
+    if (args.layout_feature or args.layout_weight is not None) and colour_kw.get("layout") is None:
+        raise UsageError("--layout-feature and --layout-weight need --layout RxC")
+    if args.layout_weight is not None and not args.layout_weight >= 0:
+        raise UsageError(f"--layout-weight must be >= 0, got {args.layout_weight}")
+    if (colour_kw or args.layout_weight is not None) and args.model != "rgb":
+        raise UsageError(f"--contrast and --layout* apply to --model rgb, not {args.model!r}")
     frame_hw = (source.size[1], source.size[0])
     background = None
     if args.model == "rgb":
@@ -277,6 +296,8 @@ def _run(args: argparse.Namespace) -> int:
         params = default_colour_params()
         if args.sigma is not None:
             params = params._replace(sigma=jnp.float32(args.sigma))
+        if args.layout_weight is not None:
+            params = params._replace(layout_weight=jnp.float32(args.layout_weight))
         filt = build_colour_filter(config)
     else:
         from cpf_jax.kernels.background import median_background

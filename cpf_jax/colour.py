@@ -80,6 +80,23 @@ them against the default in ``likelihood_terms``):
   points and heavier weights more; and its (rows + 1) x (cols + 1) corner
   gathers per particle add 40 % to the step at N = 10,000 and 2.5x at N =
   100,000 (experiments/bench_colour.py, "layout" column).
+* ``ColourConfig.layout_feature = "gradient"``: the layout cells hold gradient
+  energy in four orientations (``layout_table``, a hard-binned HOG) instead of
+  mean luminance: the figure's outline, which the luminance template loses when
+  the clothes are as dark as the background. Measured on the training scenes
+  (seeds 100-105 x 3 keys, N = 100; walking mean / worst, then the look-alike
+  scenes ``dark_clothes`` and ``distractor_pass``) and on Crossing (5 keys):
+  default 98.2 / 95.7, 57.7, 53.3, Crossing 60.8 / 55.4; luminance layout 12x3
+  at weight 10: ``dark_clothes`` 35.2 (the luminance template does not carry over
+  to the synthetic look-alike scene); gradient 12x3 at weight 10: 98.0 / 95.9,
+  65.9, 50.0, Crossing 67.5 / 62.6; at weight 20: 96.3 / 91.4, 53.8, 43.9, Crossing
+  99.8 / 73.3 (above CSRT's 95.0 / 70.0, but weight 20 was picked on Crossing
+  itself and costs the training scenes). Gradient 6x2 at weight 20: Crossing
+  100 / 73.3, training 94.3 / 86.0. Off by default: the weight that wins
+  Crossing loses on the training scenes, and the four-channel table and
+  52 four-channel corner gathers per particle make the step 2x slower at N = 10,000
+  and 6x at N = 100,000 (bench_colour.py, "gradient" column), below the
+  30 frames/s target.
 
 Bins: 8 x 8 H-S bins for chromatic pixels plus 8 value bins for achromatic
 (dark, grey, white) pixels whose hue is noise (``kernels.color.hsv_bin_index``);
@@ -166,6 +183,8 @@ __all__ = [
     "box_parts",
     "contrast_weights",
     "mixture_weights",
+    "LAYOUT_FEATURES",
+    "layout_table",
     "layout_vectors",
     "luminance",
 ]
@@ -249,6 +268,10 @@ class ColourConfig:
     # small template pins the box's vertical extent. None (default): off; (12, 3)
     # is the measured choice (experiments/colour_tables.py, "layout" rows).
     layout: tuple[int, int] | None = None
+    # Per-pixel feature of the layout cells (``layout_table``): "luminance" (cell
+    # means of brightness) or "gradient" (cell sums of gradient energy in four
+    # orientations, a small HOG-like shape template).
+    layout_feature: str = "luminance"
     # Generator of the motion noise (cpf_jax.dynamics.RNGS): "hash" is the counter
     # hash of kernels.fastrand (3x cheaper bulk draws), "jax" is jax.random.
     rng: str = "hash"
@@ -280,6 +303,9 @@ class ColourConfig:
             raise ValueError(f"contrast must be one of {CONTRASTS}, got {self.contrast!r}")
         if self.layout is not None and (len(self.layout) != 2 or min(self.layout) < 1):
             raise ValueError(f"layout must be None or (rows, cols) >= 1, got {self.layout}")
+        if self.layout_feature not in LAYOUT_FEATURES:
+            names = LAYOUT_FEATURES
+            raise ValueError(f"layout_feature must be one of {names}, got {self.layout_feature!r}")
 
     @property
     def n_bins(self) -> int:
@@ -548,20 +574,55 @@ def luminance(colour: Array) -> Array:
     return (299 * c[..., 0] + 587 * c[..., 1] + 114 * c[..., 2] + 500) // 1000
 
 
+#: Features of the layout term (``ColourConfig.layout_feature``).
+LAYOUT_FEATURES = ("luminance", "gradient")
+
+#: tan(22.5 deg): the edges between the four unsigned orientation bins.
+_TAN_22_5 = 0.41421356
+
+
+def layout_table(colour: Array, feature: str = "luminance") -> Array:
+    """Summed-area table ``[H+1, W+1, c] int32`` of the layout term's per-pixel feature.
+
+    ``"luminance"`` (c = 1): ``luminance``. ``"gradient"`` (c = 4): the gradient
+    magnitude of the luminance (central differences, edge pixels replicated),
+    rounded to an integer, in one of four unsigned orientation bins centred on
+    0, 45, 90 and 135 degrees (bin edges at 22.5 + 45 k degrees), as in HOG
+    (Dalal and Triggs 2005) with hard binning. Cell sums of it are an
+    edge-orientation template: the outline of head, shoulders and legs, which
+    stays when the clothes' colours are the background's.
+    """
+    lum = luminance(colour)
+    if feature == "luminance":
+        return integral_image(lum[..., None])
+    if feature != "gradient":
+        raise ValueError(f"feature must be one of {LAYOUT_FEATURES}, got {feature!r}")
+    p = jnp.pad(lum, 1, mode="edge").astype(jnp.float32)
+    gx = (p[1:-1, 2:] - p[1:-1, :-2]) * 0.5
+    gy = (p[2:, 1:-1] - p[:-2, 1:-1]) * 0.5
+    ax, ay = jnp.abs(gx), jnp.abs(gy)
+    diagonal = jnp.where(gx * gy > 0, 1, 3)
+    b = jnp.where(ay <= _TAN_22_5 * ax, 0, jnp.where(ax <= _TAN_22_5 * ay, 2, diagonal))
+    mag = jnp.round(jnp.sqrt(gx * gx + gy * gy)).astype(jnp.int32)
+    return integral_image(jnp.where(b[..., None] == jnp.arange(4), mag[..., None], 0))
+
+
 def layout_vectors(table: Array, boxes_xywh: Array, grid: tuple[int, int]) -> Array:
-    """Zero-mean, unit-norm vectors ``[..., rows * cols]`` of the mean luminance of each
-    box's ``grid`` cells, from a luminance ``integral_image`` ``[h+1, w+1, 1]``.
+    """Zero-mean, unit-norm vectors ``[..., rows * cols * c]`` of the per-pixel mean
+    feature of each box's ``grid`` cells, from a ``layout_table`` ``[h+1, w+1, c]``
+    (row-major cells, channels last).
 
     Their dot product is the normalised cross-correlation (NCC) of two boxes'
-    cell means: invariant to a gain and an offset of the brightness, blind to
-    hue, sensitive to where dark and light parts sit (hair over a face, a dark
-    jacket over light trousers). Cells outside the frame count as black; a box
-    of uniform brightness gives the zero vector (NCC 0).
+    cell means: invariant to a gain and an offset of the feature. With
+    luminance it is blind to hue and sensitive to where dark and light parts
+    sit (hair over a face, a dark jacket over light trousers); with gradient
+    energy, to where edges of each orientation sit. Cells outside the frame
+    count as zero; a box of uniform feature gives the zero vector (NCC 0).
     """
     rows, cols = grid
     sums, counts = grid_sums(table, boxes_xywh, rows, cols)
-    means = sums[..., 0].astype(jnp.float32) / jnp.maximum(counts, 1).astype(jnp.float32)
-    v = means.reshape(*means.shape[:-2], rows * cols)
+    means = sums.astype(jnp.float32) / jnp.maximum(counts, 1).astype(jnp.float32)[..., None]
+    v = means.reshape(*means.shape[:-3], -1)
     v = v - jnp.mean(v, axis=-1, keepdims=True)
     norm = jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
     return v / jnp.maximum(norm, 1e-3)
@@ -661,7 +722,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             )
         layout = jnp.zeros((1,), jnp.float32)
         if config.layout is not None:
-            lum_table = integral_image(luminance(frame.colour)[..., None])
+            lum_table = layout_table(frame.colour, config.layout_feature)
             layout = layout_vectors(lum_table, box, config.layout)
         c = box_ops.xywh_to_cxcywh(box)
         one = jnp.array([c[0], c[1], 0.0, 0.0, c[2], c[3], 0.0, 0.0], jnp.float32)
@@ -760,7 +821,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         log_prior = 0.0
         lum_table = None
         if config.layout is not None:
-            lum_table = integral_image(luminance(frame.colour)[..., None])
+            lum_table = layout_table(frame.colour, config.layout_feature)
             ncc = layout_vectors(lum_table, boxes_xywh, config.layout) @ state.layout
             log_prior = params.layout_weight * ncc
         if config.aspect_prior:

@@ -226,6 +226,19 @@ SCENARIOS: dict[str, ScenarioSpec] = {
         backdrop="full",
     ),
     "light_switch": ScenarioSpec(illumination="switch"),
+    # Clothes coloured like the background (OTB Crossing's problem: a dark jacket on
+    # dark asphalt, light trousers on white road markings): a far walker in a black
+    # jacket and beige trousers paces in front of clutter half of which is black or
+    # beige (a dark cabinet, light boxes) at similarity 0.9.
+    "dark_clothes": ScenarioSpec(
+        distance_m=3.6,
+        room_depth_m=4.9,
+        clutter=10,
+        clutter_match=0.5,
+        distractor_similarity=0.9,
+        backdrop="full",
+        clothing=Clothing(shirt=(38, 38, 42), trousers=(165, 155, 135), hair=(30, 25, 22)),
+    ),
     # Occlusion scenarios (paper Table 2): something nearer than the walker crosses the
     # whole view slowly (0.64 m/s) while the walker paces behind it, so the two pass each
     # other going the same way (long occlusions, up to ~60 frames) and opposite ways

@@ -200,6 +200,7 @@ VARIANTS = {
     },
     # The default plus the optional layout term (ColourConfig.layout): its cost.
     "layout": {"layout": (12, 3)},
+    "gradient": {"layout": (12, 3), "layout_feature": "gradient"},
 }
 
 
@@ -347,8 +348,9 @@ def _markdown(results: dict) -> str:
         f"Command: `{meta['command']}`",
         "",
         "| N | JAX ms/frame | JAX frames/s | OpenCV loop ms/frame | speed-up | "
-        "JAX, thesis model ms | JAX, default + layout 12x3 ms |",
-        "|---:|---:|---:|---:|---:|---:|---:|",
+        "JAX, thesis model ms | JAX, default + layout 12x3 ms | "
+        "JAX, default + gradient layout 12x3 ms |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for n in N_MAIN:
         r = results.get(str(n))
@@ -359,7 +361,8 @@ def _markdown(results: dict) -> str:
             f"| {n:,} | {r['ms_per_frame']:.2f} | {r['fps']:.1f} | "
             f"{r['baseline_ms_per_frame']:.1f}{scaled} | {r['speedup']:.0f}x | "
             f"{r.get('thesis_model_ms_per_frame', float('nan')):.2f} | "
-            f"{r.get('layout_ms_per_frame', float('nan')):.2f} |"
+            f"{r.get('layout_ms_per_frame', float('nan')):.2f} | "
+            f"{r.get('gradient_layout_ms_per_frame', float('nan')):.2f} |"
         )
     table = results.get("table_3_2")
     if table:
@@ -447,10 +450,13 @@ def main(args) -> dict:
             r["thesis_model_ms_per_frame"] = t["ms_per_frame"]
             lay = time_jax_step(n, BOX_WH, frame, repeats, variant="layout")
             r["layout_ms_per_frame"] = lay["ms_per_frame"]
+            grad = time_jax_step(n, BOX_WH, frame, repeats, variant="gradient")
+            r["gradient_layout_ms_per_frame"] = grad["ms_per_frame"]
             print(
                 f"JAX   N={n:>7,}: {r['ms_per_frame']:7.2f} ms  {r['fps']:7.1f} fps "
                 f"(thesis model {t['ms_per_frame']:.2f} ms, "
-                f"with layout 12x3 {lay['ms_per_frame']:.2f} ms)",
+                f"with layout 12x3 {lay['ms_per_frame']:.2f} ms, "
+                f"gradient 12x3 {grad['ms_per_frame']:.2f} ms)",
                 flush=True,
             )
     if args.main_only:

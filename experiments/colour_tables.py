@@ -19,9 +19,10 @@ Tables:
 * ``likelihood_ablation``: the thesis's likelihood (one H-S histogram, no
   contrast term) vs ours at N = 100.
 * ``likelihood_terms``: the optional terms (``ColourConfig.contrast = "mixture"``,
-  ``ColourConfig.layout``) against the default at N = 100: walking mean and
-  minimum, and Crossing success rate / AUC.
-* ``extra_scenarios``: the distractor and light-switch scenes at N = 100.
+  ``ColourConfig.layout`` with ``layout_feature`` luminance or gradient) against
+  the default at N = 100: walking mean and minimum, the two look-alike scenes
+  (``dark_clothes``, ``distractor_pass``), and Crossing success rate / AUC.
+* ``extra_scenarios``: the distractor, light-switch and dark-clothes scenes at N = 100.
 * ``crossing``: real OTB Crossing (../shared/data/otb/Crossing), if present.
 
 Run: ``python experiments/colour_tables.py`` (``--quick`` for a smoke run).
@@ -60,7 +61,10 @@ WALKING = (
     "walk_away",
     "turn",
 )
-EXTRA = ("distractor_pass", "light_switch")
+EXTRA = ("distractor_pass", "light_switch", "dark_clothes")
+# Scenes where the clothes' colours are the background's: the optional likelihood
+# terms are scored on them too.
+LOOKALIKE = ("dark_clothes", "distractor_pass")
 SPEEDS = {"slow": "walk_across_slow", "medium": "walk_across_medium", "fast": "walk_across_fast"}
 # Table 3.4's rows: the thesis's original model and its three variants, plus the random walk.
 MODELS = {
@@ -189,14 +193,17 @@ def markdown(res: dict) -> str:
         lines += [
             "## Optional likelihood terms, N = 100",
             "",
-            "| variant | walking mean | walking min | Crossing SR | Crossing AUC |",
-            "|---|---:|---:|---:|---:|",
+            "| variant | walking mean | walking min | dark_clothes | distractor_pass |"
+            " Crossing SR | Crossing AUC |",
+            "|---|---:|---:|---:|---:|---:|---:|",
         ]
     for label, r in res.get("likelihood_terms", {}).items():
         c = r.get("crossing") or {}
+        look = r.get("lookalike", {})
         lines.append(
             f"| {label} | {r['walking_mean']:.1f} | {r['walking_min']:.1f} | "
-            f"{c.get('success_rate', float('nan')):.1f} | {c.get('auc', float('nan')):.1f} |"
+            + " | ".join(f"{look.get(n, float('nan')):.1f}" for n in LOOKALIKE)
+            + f" | {c.get('success_rate', float('nan')):.1f} | {c.get('auc', float('nan')):.1f} |"
         )
     lines.append("")
     if res.get("crossing"):
@@ -366,7 +373,14 @@ def main(argv=None) -> dict:
                 dataclasses.replace(base, layout=(12, 3)),
                 params._replace(layout_weight=jnp.float32(w)),
             )
-            for w in (10, 20, 40)
+            for w in (10, 20)
+        },
+        **{
+            f"gradient layout 12x3 (layout_weight {w})": (
+                dataclasses.replace(base, layout=(12, 3), layout_feature="gradient"),
+                params._replace(layout_weight=jnp.float32(w)),
+            )
+            for w in (10, 20)
         },
         "mixture contrast": (dataclasses.replace(base, contrast="mixture"), params),
         "mixture + layout 12x3 (contrast_weight 5, layout_weight 20)": (
@@ -376,15 +390,19 @@ def main(argv=None) -> dict:
     }
     res["likelihood_terms"] = {}
     for label, (cfg, p) in terms.items():
+        cfg100 = dataclasses.replace(cfg, n_particles=100)
         if label == "default":
             per, cross = per100, res["crossing"]
+            look = {n: res["extra_scenarios"][n] for n in LOOKALIKE}
         else:
-            per = mean_over(WALKING, seeds, keys, dataclasses.replace(cfg, n_particles=100), p)[1]
+            per = mean_over(WALKING, seeds, keys, cfg100, p)[1]
             cross = crossing(100, crossing_keys, cfg, p)
+            look = mean_over(LOOKALIKE, seeds, keys, cfg100, p)[1]
         res["likelihood_terms"][label] = {
             "walking_mean": float(np.mean(list(per.values()))),
             "walking_min": float(min(per.values())),
             "per_scenario": per,
+            "lookalike": look,
             "crossing": cross,
         }
         print(f"terms {label}: {res['likelihood_terms'][label]}", flush=True)

@@ -76,6 +76,9 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
     assert main(argv) == 0
     res = read_results(out)
     assert len(res["frame"]) == 3 and np.isfinite(res["boxes"]).all()
+    argv += ["--layout-feature", "gradient", "--layout-weight", "20"]
+    assert main(argv) == 0
+    assert np.isfinite(read_results(out)["boxes"]).all()
 
 
 @pytest.mark.parametrize(
@@ -88,6 +91,9 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
         (["{folder}", "--bins", "8by8"], "--bins"),
         (["{folder}", "--layout", "12"], "--layout"),
         (["{folder}", "--layout", "0x3"], "--layout"),
+        (["{folder}", "--layout", "6x2", "--layout-weight", "-1"], "--layout-weight"),
+        (["{folder}", "--model", "grid", "--layout", "6x2", "--layout-weight", "5"], "--model rgb"),
+        (["{folder}", "--layout-feature", "gradient"], "need --layout"),
         (["{folder}", "--model", "rgbd", "--contrast", "mixture"], "--model rgb"),
         (["{folder}", "--model", "rgbd", "--background", "empty"], "empty-scene"),
     ],

@@ -17,6 +17,7 @@ from cpf_jax.colour import (
     build_colour_filter,
     contrast_weights,
     default_colour_params,
+    layout_table,
     layout_vectors,
     luminance,
     mixture_weights,
@@ -113,18 +114,65 @@ def test_luminance_matches_opencv():
     assert np.abs(got - want).max() <= 1  # OpenCV rounds in fixed point
 
 
-def _layout_reference(lum: np.ndarray, box, rows: int, cols: int) -> np.ndarray:
-    h, w = lum.shape
+def _layout_reference(feat: np.ndarray, box, rows: int, cols: int) -> np.ndarray:
+    """feat [h, w] or [h, w, c] -> the zero-mean unit-norm vector of cell means."""
+    feat = feat.reshape(*feat.shape[:2], -1).astype(np.float64)
+    h, w = feat.shape[:2]
     x, y, bw, bh = box
     ys = [min(max(int(np.floor(y + bh * i / rows + 0.5)), 0), h) for i in range(rows + 1)]
     xs = [min(max(int(np.floor(x + bw * j / cols + 0.5)), 0), w) for j in range(cols + 1)]
-    means = np.zeros((rows, cols))
+    means = np.zeros((rows, cols, feat.shape[2]))
     for i in range(rows):
         for j in range(cols):
-            cell = lum[ys[i] : ys[i + 1], xs[j] : xs[j + 1]]
-            means[i, j] = cell.mean() if cell.size else 0.0
+            cell = feat[ys[i] : ys[i + 1], xs[j] : xs[j + 1]]
+            means[i, j] = cell.mean(axis=(0, 1)) if cell.size else 0.0
     v = means.ravel() - means.mean()
     return v / max(np.linalg.norm(v), 1e-3)
+
+
+def _gradient_reference(lum: np.ndarray) -> np.ndarray:
+    """[h, w] luminance -> [h, w, 4] rounded gradient magnitude per orientation bin, from
+    np.gradient and arctan2 (the kernel bins without either)."""
+    gy, gx = np.gradient(np.pad(lum.astype(np.float64), 1, mode="edge"))
+    gy, gx = gy[1:-1, 1:-1], gx[1:-1, 1:-1]
+    theta = np.degrees(np.arctan2(gy, gx)) % 180.0
+    b = np.floor(((theta + 22.5) % 180.0) / 45.0).astype(int)
+    out = np.zeros((*lum.shape, 4))
+    np.put_along_axis(out, b[..., None], np.round(np.hypot(gx, gy))[..., None], axis=-1)
+    return out
+
+
+def test_gradient_layout_table_matches_numpy_under_jit_and_vmap():
+    frame, _ = _frame()
+    lum = np.asarray(luminance(frame.colour))
+    f = jax.jit(lambda c: layout_table(c, "gradient"))
+    got = np.asarray(f(frame.colour))
+    want = _gradient_reference(lum)
+    assert got.shape == (H + 1, W + 1, 4) and got.dtype == np.int32
+    per_pixel = np.diff(np.diff(got, axis=0), axis=1)
+    # exact except where an angle sits on a bin edge (float rounding picks a side)
+    assert (per_pixel == want).all(axis=-1).mean() > 0.999
+    np.testing.assert_array_equal(per_pixel.sum(-1), want.sum(-1))
+    # vmap over frames; a uniform frame has no edges
+    flat = jnp.full_like(frame.colour, 90)
+    both = np.asarray(jax.vmap(f)(jnp.stack([frame.colour, flat])))
+    np.testing.assert_array_equal(both[0], got)
+    assert both[1].max() == 0
+    # luminance table: the plain summed-area table of the luminance
+    lt = np.asarray(layout_table(frame.colour))
+    np.testing.assert_array_equal(lt[1:, 1:, 0], lum.cumsum(0).cumsum(1))
+
+
+@pytest.mark.parametrize("grid", [(12, 3), (6, 2)])
+def test_gradient_layout_vectors_match_numpy(grid):
+    frame, box = _frame()
+    feat = _gradient_reference(np.asarray(luminance(frame.colour)))
+    boxes = np.array([box, [3.3, 7.6, 40.2, 70.9], [-10, -5, 40, 50]], np.float32)
+    f = jax.jit(jax.vmap(lambda b: layout_vectors(layout_table(frame.colour, "gradient"), b, grid)))
+    got = np.asarray(f(boxes))
+    want = np.stack([_layout_reference(feat, b, *grid) for b in boxes])
+    assert got.shape == (3, grid[0] * grid[1] * 4)
+    np.testing.assert_allclose(got, want, atol=2e-3)
 
 
 @pytest.mark.parametrize("grid", [(12, 3), (4, 1), (5, 4)])
@@ -167,12 +215,18 @@ def _moving(n: int) -> tuple[Frame, np.ndarray]:
 
 
 @pytest.mark.parametrize(
-    "contrast,layout", [("mixture", None), ("linear", (12, 3)), ("mixture", (12, 3))]
+    "contrast,layout,feature",
+    [
+        ("mixture", None, "luminance"),
+        ("linear", (12, 3), "luminance"),
+        ("mixture", (12, 3), "luminance"),
+        ("linear", (6, 2), "gradient"),
+    ],
 )
-def test_filter_tracks_with_the_optional_terms(contrast, layout):
+def test_filter_tracks_with_the_optional_terms(contrast, layout, feature):
     """Stated threshold: IoU >= 0.5 on >= 95 % of 30 frames, with the term switched on."""
     frames, gt = _moving(30)
-    config = ColourConfig(n_particles=128, contrast=contrast, layout=layout)
+    config = ColourConfig(n_particles=128, contrast=contrast, layout=layout, layout_feature=feature)
     params = default_colour_params()._replace(layout_rate=jnp.float32(0.05))
     filt = build_colour_filter(config)
     boxes = np.asarray(
@@ -188,6 +242,8 @@ def test_config_rejects_bad_terms():
         ColourConfig(contrast="ratio")
     with pytest.raises(ValueError, match="layout"):
         ColourConfig(layout=(0, 3))
+    with pytest.raises(ValueError, match="layout_feature"):
+        ColourConfig(layout=(6, 2), layout_feature="hog")
 
 
 def test_contrast_weights_do_not_depend_on_how_much_ring_the_frame_cuts_off():

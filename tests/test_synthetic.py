@@ -332,6 +332,28 @@ def test_distractor_shares_the_shirt_hue():
     assert f_near > 0.05 and f_near > 3 * f_far
 
 
+def test_dark_clothes_match_the_background():
+    """The jacket's near-black is common in dark_clothes' background (matched clutter),
+    rare in the plain room with the same clothes; the beige trousers match the wall."""
+
+    def share(seq, rgb):
+        c, bg = seq.colour[0].astype(int), ~seq.mask[0]
+        return float((np.abs(c - np.array(rgb)).max(-1)[bg] < 30).mean())
+
+    spec = SCENARIOS["dark_clothes"]
+    jacket, trousers = spec.clothing.shirt, spec.clothing.trousers
+    dark = [make_sequence("dark_clothes", seed=s, n_frames=2) for s in range(4)]
+    plain = [
+        make_sequence("walk_across_medium", seed=s, n_frames=2, clothing=spec.clothing)
+        for s in range(4)
+    ]
+    assert np.mean([share(q, jacket) for q in dark]) > 2 * np.mean(
+        [share(q, jacket) for q in plain]
+    )
+    assert np.mean([share(q, trousers) for q in dark]) > 0.2
+    assert all(q.boxes[0, 3] < 180 for q in dark)  # a far walker: a small box
+
+
 def test_illumination_switch_and_constant_light():
     on = make_sequence("light_switch", n_frames=12)
     off = make_sequence("walk_across_medium", n_frames=12)
