@@ -963,6 +963,12 @@ def motion_position_log_density(
     return jnp.logaddexp(_log_clip(1.0 - g) + plain, _log_clip(g) + guided)
 
 
+#: Frames at which a cell's ``depth_age`` saturates. A cell with no depth template
+#: counts as this stale in ``search_drift``: the widest gate, since ``depth_speed *
+#: MAX_DEPTH_AGE`` (6000 mm at the defaults) exceeds ``search_drift_max`` (900 mm).
+MAX_DEPTH_AGE = 100.0
+
+
 def occluder_margin(params: RGBDParams, z: Array) -> Array:
     """How much nearer (mm) than depth ``z`` a pixel or cell median must be to count as
     an occluder: ``max(occluder_margin, occluder_margin_rel * z)``."""
@@ -1315,7 +1321,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         ``depth_speed`` per frame hidden or stale, up to ``search_drift_max``. Staleness
         counts too: a target found again by colour while its templates are off keeps the
         wide gate until they learn its depth (one frame found must not shrink it)."""
-        stale = jnp.min(jnp.where(state.depth_template > 0, state.depth_age, 100.0))
+        stale = jnp.min(jnp.where(state.depth_template > 0, state.depth_age, MAX_DEPTH_AGE))
         hidden_for = jnp.maximum(state.occluded_frames.astype(jnp.float32), stale)
         return jnp.minimum(params.depth_speed * hidden_for, params.search_drift_max)
 
@@ -1719,7 +1725,9 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             depth_template = jnp.where(
                 d_ok, updated, jnp.where(follow, depth_template + shift, depth_template)
             )
-            depth_age = jnp.where(d_ok | follow, 0.0, jnp.minimum(state.depth_age + 1.0, 100.0))
+            depth_age = jnp.where(
+                d_ok | follow, 0.0, jnp.minimum(state.depth_age + 1.0, MAX_DEPTH_AGE)
+            )
             # Velocity: corrected by the mean innovation (median - predicted template) of
             # the updated cells; while nothing is measured it fades (by the same gain), so
             # the templates of a hidden target do not run away.
