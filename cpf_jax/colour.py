@@ -72,13 +72,14 @@ them against the default in ``likelihood_terms``):
   (N = 100, colour_tables.py ``likelihood_terms``, 2026-11-24; walking mean /
   worst scenario, then Crossing success rate / AUC): default 98.3 / 96.6 and
   60.8 / 55.4; layout 12x3 at ``layout_weight`` 10 99.1 / 98.1 and 95.7 / 67.0;
-  at 20 96.5 / 91.4 and 99.2 / 69.4; at 40 89.5 / 74.4 and 96.8 / 70.4. The
+  at 20 96.5 / 91.4 and 99.2 / 69.4; at 40 (an earlier run) 89.5 / 74.4 and
+  96.8 / 70.4. The
   mixture contrast alone scores 71.3 / 37.9 and 66.7 / 57.0; mixture + layout
   (contrast_weight 5, layout_weight 20) 98.0 / 94.9 and 99.0 / 70.8. Off by
   default for two reasons: on the training scenes (seeds 100-105, where the
   defaults are chosen) layout at weight 10 costs the walk-across scenes 0-1.5
   points and heavier weights more; and its (rows + 1) x (cols + 1) corner
-  gathers per particle add 40 % to the step at N = 10,000 and 2.5x at N =
+  gathers per particle add 30-40 % to the step at N = 10,000 and 2.5-2.7x at N =
   100,000 (experiments/bench_colour.py, "layout" column).
 * ``ColourConfig.layout_feature = "gradient"``: the layout cells hold gradient
   energy in four orientations (``layout_table``, a hard-binned HOG) instead of
@@ -93,10 +94,13 @@ them against the default in ``likelihood_terms``):
   99.8 / 73.3 (above CSRT's 95.0 / 70.0, but weight 20 was picked on Crossing
   itself and costs the training scenes). Gradient 6x2 at weight 20: Crossing
   100 / 73.3, training 94.3 / 86.0. Off by default: the weight that wins
-  Crossing loses on the training scenes, and the four-channel table and
-  52 four-channel corner gathers per particle make the step 2x slower at N = 10,000
-  and 6x at N = 100,000 (bench_colour.py, "gradient" column), below the
-  30 frames/s target.
+  Crossing loses on the training scenes, and the four-channel table and 52
+  four-channel corner gathers per particle make the step 2.4x slower at N =
+  10,000 (15.0 against 6.2 ms) and 9x at N = 100,000 (114 against 12 ms, 9
+  frames/s, below the 30 frames/s target; bench_colour.py, "gradient" column).
+  On the evaluation seeds (colour_tables.md, ``likelihood_terms``) gradient 12x3
+  at weight 20 keeps every walking scene >= 95 (97.2 / 95.2) and scores Crossing
+  99.8 / 73.3, but ``distractor_pass`` falls from 49.3 to 31.9.
 
 Bins: 8 x 8 H-S bins for chromatic pixels plus 8 value bins for achromatic
 (dark, grey, white) pixels whose hue is noise (``kernels.color.hsv_bin_index``);
