@@ -73,8 +73,7 @@ them against the default in ``likelihood_terms``):
   worst scenario, then Crossing success rate / AUC): default 98.3 / 96.6 and
   60.8 / 55.4; layout 12x3 at ``layout_weight`` 10 99.1 / 98.1 and 95.7 / 67.0;
   at 20 96.5 / 91.4 and 99.2 / 69.4; at 40 (an earlier run) 89.5 / 74.4 and
-  96.8 / 70.4. The
-  mixture contrast alone scores 71.3 / 37.9 and 66.7 / 57.0; mixture + layout
+  96.8 / 70.4. The mixture contrast alone scores 71.3 / 37.9 and 66.7 / 57.0; mixture + layout
   (contrast_weight 5, layout_weight 20) 98.0 / 94.9 and 99.0 / 70.8. Off by
   default for two reasons: on the training scenes (seeds 100-105, where the
   defaults are chosen) layout at weight 10 costs the walk-across scenes 0-1.5
@@ -308,8 +307,9 @@ class ColourConfig:
         if self.layout is not None and (len(self.layout) != 2 or min(self.layout) < 1):
             raise ValueError(f"layout must be None or (rows, cols) >= 1, got {self.layout}")
         if self.layout_feature not in LAYOUT_FEATURES:
-            names = LAYOUT_FEATURES
-            raise ValueError(f"layout_feature must be one of {names}, got {self.layout_feature!r}")
+            raise ValueError(
+                f"layout_feature must be one of {LAYOUT_FEATURES}, got {self.layout_feature!r}"
+            )
 
     @property
     def n_bins(self) -> int:
@@ -726,8 +726,8 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             )
         layout = jnp.zeros((1,), jnp.float32)
         if config.layout is not None:
-            lum_table = layout_table(frame.colour, config.layout_feature)
-            layout = layout_vectors(lum_table, box, config.layout)
+            feature_table = layout_table(frame.colour, config.layout_feature)
+            layout = layout_vectors(feature_table, box, config.layout)
         c = box_ops.xywh_to_cxcywh(box)
         one = jnp.array([c[0], c[1], 0.0, 0.0, c[2], c[3], 0.0, 0.0], jnp.float32)
         particles = jnp.tile(one, (n, 1))
@@ -823,10 +823,10 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             score = score - (grown_sums[:, 1] - sums[:, 1])
         score = score / area
         log_prior = 0.0
-        lum_table = None
+        feature_table = None
         if config.layout is not None:
-            lum_table = layout_table(frame.colour, config.layout_feature)
-            ncc = layout_vectors(lum_table, boxes_xywh, config.layout) @ state.layout
+            feature_table = layout_table(frame.colour, config.layout_feature)
+            ncc = layout_vectors(feature_table, boxes_xywh, config.layout) @ state.layout
             log_prior = params.layout_weight * ncc
         if config.aspect_prior:
             log_prior = log_prior + aspect_log_prior(
@@ -873,7 +873,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             # Slow layout update (params.layout_rate; 0 keeps the initial box's).
             rate = jnp.where(lost, 0.0, params.layout_rate)
             blend = (1.0 - rate) * layout + rate * layout_vectors(
-                lum_table, est_xywh, config.layout
+                feature_table, est_xywh, config.layout
             )
             layout = blend / jnp.maximum(jnp.sqrt(jnp.sum(blend * blend)), 1e-6)
 
