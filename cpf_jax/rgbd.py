@@ -128,7 +128,11 @@ With ``report="pixels"`` (default) the reported box is the tight box of the
 target's pixels (foreground within the target gate of the depth template) in and
 around the estimate; ``"grid-occlusion"`` also reports no box when those pixels
 cover less than ``min_coverage`` of the estimate (the target is hidden, whatever
-the votes say).
+the votes say). Only the main run of columns (rows) counts: the one holding the most
+target pixels, its lines less than ``report_gap`` times the estimate's width (height)
+apart. On IST, stray foreground at the target's depth among the desks stretched the
+tight box to twice the person's width; with the main run, grid-occlusion AUC over 8
+keys went from 31.4 to 33.8.
 
 Depth templates move: the target's depth velocity ``v`` (mm per frame) is tracked by an
 alpha-beta filter. Each step first predicts every known template by ``v``; after the
@@ -456,6 +460,7 @@ class RGBDParams(NamedTuple):
     recovery_gate_rel: Array  # ... or this fraction of the target's depth
     report_margin: Array  # report="pixels": search the estimate grown by this per side
     report_min_pixels: Array  # ... ignoring columns / rows with fewer target pixels
+    report_gap: Array  # ... and those further than this share of the box from the main run
     min_coverage: Array  # grid-occlusion: fewer target pixels (share of the box): hidden
     max_drift: Array  # mm, cap of depth_speed * age
     search_drift_max: Array  # mm, cap of the widening of the target gate while hidden
@@ -515,6 +520,7 @@ PARAM_CONSTRAINTS = RGBDParams(
     recovery_gate_rel="softplus",
     report_margin="softplus",
     report_min_pixels="softplus",
+    report_gap="softplus",
     min_coverage="sigmoid",
     max_drift="softplus",
     search_drift_max="softplus",
@@ -596,6 +602,7 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         recovery_gate_rel=f(0.1),
         report_margin=f(0.25),
         report_min_pixels=f(2.0),
+        report_gap=f(0.3),
         min_coverage=f(0.02),
         max_drift=f(500.0),
         search_drift_max=f(900.0),
@@ -1203,6 +1210,24 @@ def _kept_lines(counts: Array, min_pixels: Array) -> Array:
     return (counts > 0) & (window >= min_pixels)
 
 
+def _main_run(counts: Array, kept: Array, gap: Array) -> Array:
+    """``[L]`` bool: the kept lines of the run holding the most target pixels.
+
+    Kept lines (``kept [L]``) less than ``gap`` lines apart belong to one run; ``counts
+    [L]`` weigh them. A person is one run (an arm or a leg apart by a few lines stays
+    in it); stray foreground at the target's depth further off (a desk, a wall) is
+    another run, and must not stretch the tight box.
+    """
+    idx = jnp.arange(counts.shape[0], dtype=jnp.float32)
+    last = jax.lax.cummax(jnp.where(kept, idx, -jnp.inf))
+    prev = jnp.concatenate([jnp.full((1,), -jnp.inf), last[:-1]])  # last kept line before
+    start = kept & (idx - prev > gap)
+    run = jnp.cumsum(start.astype(jnp.int32)) - 1  # run index of every line (-1: none yet)
+    run = jnp.where(kept, run, counts.shape[0])  # not kept: an unused segment
+    totals = jax.ops.segment_sum(counts, run, num_segments=counts.shape[0] + 1)
+    return kept & (run == jnp.argmax(totals[:-1]))
+
+
 def build_rgbd_filter(config: RGBDConfig) -> Filter:
     """``Filter(init, step)`` of ``config.variant``.
 
@@ -1481,7 +1506,8 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         of the depth template ``z`` (nearer pixels belong to an occluder);
         searched in the estimate grown by
         ``report_margin`` per side. Columns / rows with fewer than
-        ``report_min_pixels`` of them are ignored (isolated noise). The estimate
+        ``report_min_pixels`` of them are ignored (isolated noise), and so are
+        those outside the main run (``_main_run``, gaps of ``report_gap``). The estimate
         itself when no target pixel is found. ``coverage``: target pixels found /
         the estimate's area (about 0 when the target is hidden); ``held``: the same
         with the gate of fresh templates (the target is where its templates expect it).
@@ -1506,8 +1532,11 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         # A column / row counts when it and its two neighbours hold report_min_pixels
         # target pixels: isolated noise pixels drop out, a 1 px wide arm or leg (a sliver
         # at an occluder's edge, one pixel per row) stays.
-        col_n = _kept_lines(jnp.sum(t, axis=0), params.report_min_pixels)
-        row_n = _kept_lines(jnp.sum(t, axis=1), params.report_min_pixels)
+        col_count, row_count = jnp.sum(t, axis=0), jnp.sum(t, axis=1)
+        col_n = _kept_lines(col_count, params.report_min_pixels)
+        row_n = _kept_lines(row_count, params.report_min_pixels)
+        col_n = _main_run(col_count, col_n, params.report_gap * est[2])
+        row_n = _main_run(row_count, row_n, params.report_gap * est[3])
         ok = jnp.any(col_n) & jnp.any(row_n)
         coverage = jnp.sum(t) / jnp.maximum(est[2] * est[3], 1.0)
         big = jnp.float32(1e9)

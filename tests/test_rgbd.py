@@ -22,6 +22,7 @@ from cpf_jax.rgbd import (
     RGBDConfig,
     RGBDState,
     _flag_posterior,
+    _main_run,
     _observe,
     build_rgbd_filter,
     cell_foreground_ratios,
@@ -370,6 +371,49 @@ def test_template_update_only_in_cells_voted_visible(toy):
             assert not changed[voted].any()  # eq. 8: occluded cells keep their template
             checked += 1
     assert checked >= 3  # the partial occlusion (t >= 10) was voted in some frames
+
+
+def _main_run_reference(counts, kept, gap):
+    """Plain-Python runs: kept lines more than ``gap`` apart start a new run."""
+    runs, last = [], None
+    for i in np.flatnonzero(kept):
+        if last is None or i - last > gap:
+            runs.append([])
+        runs[-1].append(i)
+        last = i
+    out = np.zeros(len(kept), bool)
+    if runs:
+        best = max(runs, key=lambda r: counts[r].sum())  # first of equal totals
+        out[best] = True
+    return out
+
+
+@pytest.mark.parametrize("mode", ["jit", "vmap"])
+def test_main_run_matches_reference(mode):
+    """The pixel report's main run (``_main_run``) against a plain loop over lines."""
+    rng = np.random.default_rng(3)
+    n, length = 64, 50
+    counts = rng.integers(0, 6, (n, length)).astype(np.float32)
+    kept = rng.random((n, length)) < rng.uniform(0.05, 0.9, (n, 1))
+    counts = np.where(kept, counts + 1, 0).astype(np.float32)
+    gaps = rng.uniform(0.0, 6.0, n).astype(np.float32)
+    kept[0] = False  # no kept line at all: nothing
+    # A person (lines 10-29 with a 3-line gap at 18-20) and stray pixels at 36-38.
+    kept[1] = False
+    kept[1, 10:18] = kept[1, 21:30] = kept[1, 36:39] = True
+    counts[1] = np.where(kept[1], 5.0, 0.0)
+    counts[1, 36:39] = 9.0
+    gaps[1] = 4.0
+    want = np.stack([_main_run_reference(counts[i], kept[i], gaps[i]) for i in range(n)])
+    if mode == "jit":
+        f = jax.jit(_main_run)
+        got = np.stack([np.asarray(f(counts[i], kept[i], gaps[i])) for i in range(n)])
+    else:
+        got = np.asarray(jax.jit(jax.vmap(_main_run))(counts, kept, gaps))
+    np.testing.assert_array_equal(got, want)
+    assert not got[0].any()
+    np.testing.assert_array_equal(np.flatnonzero(got[1]), [*range(10, 18), *range(21, 30)])
+    assert got.any(axis=1).sum() == kept.any(axis=1).sum()
 
 
 # -- tracking ---------------------------------------------------------------------------------
