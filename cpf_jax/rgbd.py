@@ -129,7 +129,7 @@ target's pixels (foreground within the target gate of the depth template) in and
 around the estimate; ``"grid-occlusion"`` also reports no box when those pixels
 cover less than ``min_coverage`` of the estimate (the target is hidden, whatever
 the votes say). Only the main run of columns (rows) counts: the one holding the most
-target pixels, its lines less than ``report_gap`` times the estimate's width (height)
+target pixels, its lines at most ``report_gap`` times the estimate's width (height)
 apart. On IST, stray foreground at the target's depth among the desks stretched the
 tight box to twice the person's width; with the main run, grid-occlusion AUC over 8
 keys went from 31.4 to 33.8 (the table's 4 keys: 34.2 to 37.3). The cost: a person split
@@ -1216,7 +1216,7 @@ def _kept_lines(counts: Array, min_pixels: Array) -> Array:
 def _main_run(counts: Array, kept: Array, gap: Array) -> Array:
     """``[L]`` bool: the kept lines of the run holding the most target pixels.
 
-    Kept lines (``kept [L]``) less than ``gap`` lines apart belong to one run; ``counts
+    Kept lines (``kept [L]``) at most ``gap`` lines apart belong to one run; ``counts
     [L]`` weigh them. A person is one run (an arm or a leg apart by a few lines stays
     in it); stray foreground at the target's depth further off (a desk, a wall) is
     another run, and must not stretch the tight box.
