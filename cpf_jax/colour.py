@@ -163,6 +163,7 @@ from cpf_jax.kernels.histogram import (
     DEFAULT_CHUNK,
     bhattacharyya,
     box_histograms,
+    grid_ncc,
     grid_sums,
     integral_image,
     rect_reduce,
@@ -826,7 +827,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         feature_table = None
         if config.layout is not None:
             feature_table = layout_table(frame.colour, config.layout_feature)
-            ncc = layout_vectors(feature_table, boxes_xywh, config.layout) @ state.layout
+            ncc = grid_ncc(feature_table, boxes_xywh, state.layout, *config.layout, config.chunk)
             log_prior = params.layout_weight * ncc
         if config.aspect_prior:
             log_prior = log_prior + aspect_log_prior(

@@ -113,6 +113,7 @@ __all__ = [
     "integral_image",
     "rect_sums",
     "grid_sums",
+    "grid_ncc",
     "window_origin",
     "window_covers",
     "uses_window",
@@ -256,6 +257,70 @@ def grid_sums(table: Array, boxes: Array, rows: int, cols: int) -> Array:
     )
     counts = (ys[..., 1:] - ys[..., :-1])[..., :, None] * (xs[..., 1:] - xs[..., :-1])[..., None, :]
     return sums, counts
+
+
+def grid_ncc(
+    table: Array,
+    boxes: Array,
+    template: Array,
+    rows: int,
+    cols: int,
+    chunk: int | None = DEFAULT_CHUNK,
+) -> Array:
+    """Normalised cross-correlation ``[N]`` of each box's ``rows x cols`` cell means with
+    ``template``, for ``boxes [N, 4] (x, y, w, h)`` and an ``integral_image`` table
+    ``[h+1, w+1, c]``.
+
+    ``template [rows * cols * c]`` is zero-mean and unit-norm, cells row-major and
+    channels last (as ``colour.layout_vectors`` makes them). The result equals
+    ``layout_vectors(table, boxes, (rows, cols)) @ template``: cells as in
+    :func:`grid_sums`, a cell outside the frame has mean 0, a box of uniform
+    feature scores 0.
+
+    Laid out for a CPU (the same maths as ``grid_sums`` then a dot product, 2-4x
+    faster at N = 100,000 on 2 cores): the box axis is the minor one (each
+    ``(rows + 1) x (cols + 1)`` lattice corner and each cell is one contiguous
+    vector over the boxes), every channel's corners are gathered from its own
+    plane as scalars and materialised (fused into the cell differences, each
+    corner was gathered four times), the sums over cells are products with
+    small matrices, and the boxes go through in blocks of ``chunk`` (one
+    block's corners fit in cache; ``None``: one block, e.g. on a GPU).
+    """
+    height, width = table.shape[0] - 1, table.shape[1] - 1
+    c = table.shape[-1]
+    n_cells = rows * cols * c
+    b = jnp.asarray(boxes, jnp.float32).T  # [4, N]
+    fy = (jnp.arange(rows + 1, dtype=jnp.float32) / rows)[:, None]
+    fx = (jnp.arange(cols + 1, dtype=jnp.float32) / cols)[:, None]
+    ys = jnp.clip(jnp.floor(b[1] + b[3] * fy + 0.5), 0, height).astype(jnp.int32)
+    xs = jnp.clip(jnp.floor(b[0] + b[2] * fx + 0.5), 0, width).astype(jnp.int32)
+    ys, xs = lax.optimization_barrier((ys, xs))  # [rows + 1, N], [cols + 1, N]
+    planes = jnp.moveaxis(table, -1, 0).reshape(c, -1)
+    # Channel-major cells, to match the stacked planes below.
+    t = jnp.moveaxis(jnp.asarray(template, jnp.float32).reshape(rows, cols, c), -1, 0)
+    t = t.reshape(1, n_cells)
+    ones = jnp.ones((1, n_cells), jnp.float32)
+
+    def block(ys: Array, xs: Array) -> Array:
+        n = ys.shape[-1]
+        idx = lax.optimization_barrier(ys[:, None, :] * (width + 1) + xs[None, :, :])
+        corners = lax.optimization_barrier(
+            jnp.stack([planes[k].at[idx].get(mode="promise_in_bounds") for k in range(c)])
+        )  # [c, rows + 1, cols + 1, n]
+        sums = (
+            corners[:, 1:, 1:] - corners[:, :-1, 1:] - corners[:, 1:, :-1] + corners[:, :-1, :-1]
+        )
+        area = (ys[1:] - ys[:-1])[:, None, :] * (xs[1:] - xs[:-1])[None, :, :]
+        inv = 1.0 / jnp.maximum(area, 1).astype(jnp.float32)
+        means = lax.optimization_barrier((sums.astype(jnp.float32) * inv).reshape(n_cells, n))
+        # Centred before the dot product too: a uniform box then scores exactly 0
+        # (its cell means times a template summing to zero only up to rounding).
+        centred = means - (ones @ means) / n_cells
+        dot = (t @ centred)[0]
+        norm = jnp.sqrt((ones @ (centred * centred))[0])
+        return dot / jnp.maximum(norm, 1e-3)
+
+    return _chunked(block, (ys, xs), chunk, (1, 1))
 
 
 # ----------------------------------------------------------------------------- window placement

@@ -25,7 +25,7 @@ from cpf_jax.colour import (
     track_boxes,
 )
 from cpf_jax.kernels.boxes import iou
-from cpf_jax.kernels.histogram import integral_image
+from cpf_jax.kernels.histogram import grid_ncc, integral_image
 from cpf_jax.types import Frame
 
 H, W = 120, 160
@@ -207,6 +207,39 @@ def test_layout_tells_an_upside_down_box_apart():
         (12, 3),
     )
     assert float(v @ flipped) < 0.0
+
+
+@pytest.mark.parametrize("feature,grid", [("luminance", (12, 3)), ("gradient", (6, 2))])
+def test_grid_ncc_matches_numpy_under_jit_and_vmap(feature, grid):
+    """The step's fused NCC (``grid_ncc``, blocks of boxes) equals the NumPy cell-mean
+    vectors' dot product with the template, for boxes inside, across and outside the
+    frame, a uniform box, and a box count that leaves a partial last block."""
+    frame, box = _frame()
+    lum = np.asarray(luminance(frame.colour))
+    feat = lum if feature == "luminance" else _gradient_reference(lum)
+    rng = np.random.default_rng(5)
+    n = 37
+    boxes = np.stack(
+        [rng.uniform(-30, W, n), rng.uniform(-30, H, n), rng.uniform(4, 70, n), rng.uniform(4, 90, n)],
+        axis=1,
+    ).astype(np.float32)
+    boxes[:4] = [box, [-10, -5, 40, 50], [W + 5, 10, 20, 30], [3.3, 7.6, 40.2, 70.9]]
+    template = _layout_reference(feat, box, *grid)
+    want = np.stack([_layout_reference(feat, b, *grid) for b in boxes]) @ template
+    table = layout_table(frame.colour, feature)
+    t = jnp.asarray(template, jnp.float32)
+    f = jax.jit(lambda b: grid_ncc(table, b, t, *grid, chunk=16))  # 16 + 16 + 5 boxes
+    got = np.asarray(f(jnp.asarray(boxes)))
+    np.testing.assert_allclose(got, want, atol=2e-3)
+    assert abs(got[0] - 1.0) < 1e-3 and got[2] == 0.0  # itself; a box off the frame
+    # one block (chunk=None) and vmap over two templates agree with the blocks
+    g = jax.jit(jax.vmap(lambda tt: grid_ncc(table, jnp.asarray(boxes), tt, *grid, chunk=None)))
+    both = np.asarray(g(jnp.stack([t, -t])))
+    np.testing.assert_allclose(both[0], got, atol=1e-5)
+    np.testing.assert_allclose(both[1], -got, atol=1e-5)
+    # a box of uniform feature scores 0, not NaN
+    flat = layout_table(jnp.full_like(frame.colour, 90), feature)
+    assert float(grid_ncc(flat, jnp.asarray(boxes[:1]), t, *grid)[0]) == 0.0
 
 
 def _moving(n: int) -> tuple[Frame, np.ndarray]:
