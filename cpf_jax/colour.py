@@ -63,23 +63,32 @@ them against the default in ``likelihood_terms``):
   box that grows over them loses.
 * ``ColourConfig.layout = (rows, cols)``: ``layout_weight`` times the normalised
   cross-correlation of the box's cell-mean luminance with the initial box's
-  (``layout_vectors``; cells from a luminance summed-area table,
-  ``kernels.histogram.grid_sums``), optionally updated at ``layout_rate``.
+  (``layout_vectors`` for the template, ``kernels.histogram.grid_ncc`` for the
+  particles; cells from a luminance summed-area table), optionally updated at
+  ``layout_rate``.
   Histograms are blind to where colours sit inside the box; when the clothes'
   colours are also the background's (a dark jacket on a dark road, OTB
   Crossing), the histogram terms prefer a box on the legs alone and only the
   layout pins the box's vertical extent. Measured with the random-walk default
   (N = 100, colour_tables.py ``likelihood_terms``, 2026-11-24; walking mean /
   worst scenario, then Crossing success rate / AUC): default 98.3 / 96.6 and
-  60.8 / 55.4; layout 12x3 at ``layout_weight`` 10 99.1 / 98.1 and 95.7 / 67.0;
-  at 20 96.5 / 91.4 and 99.2 / 69.4; at 40 (an earlier run) 89.5 / 74.4 and
+  60.8 / 55.4; layout 12x3 at ``layout_weight`` 10 99.1 / 98.0 and 95.7 / 67.0;
+  at 20 96.3 / 91.4 and 99.2 / 69.4; at 40 (an earlier run) 89.5 / 74.4 and
   96.8 / 70.4. The mixture contrast alone scores 71.3 / 37.9 and 66.7 / 57.0; mixture + layout
-  (contrast_weight 5, layout_weight 20) 98.0 / 94.9 and 99.0 / 70.8. Off by
-  default for two reasons: on the training scenes (seeds 100-105, where the
-  defaults are chosen) layout at weight 10 costs the walk-across scenes 0-1.5
-  points and heavier weights more; and its (rows + 1) x (cols + 1) corner
-  gathers per particle add 30-40 % to the step at N = 10,000 and 2.5-2.7x at N =
-  100,000 (experiments/bench_colour.py, "layout" column).
+  (contrast_weight 5, layout_weight 20) 98.0 / 94.9 and 99.0 / 70.8; on the
+  training scenes (seeds 100-105, where the defaults are chosen) the same
+  mixture + layout scores 95.2 / 90.5 (walk-across 90.5-91.9), at layout_weight
+  15 95.8 / 92.1 (Crossing 99.5 / 70.8), and a layout template updated at
+  ``layout_rate`` 0.02 / 0.1 does not help (walk_across_fast 91.7 / 89.3,
+  Crossing 99.5 / 70.6 and 85.3 / 66.0). The largest loss (walk_across_fast,
+  seed 102: 60 %) is a figure turning towards the camera beside furniture of
+  its jacket's colour: the first frame's side-view layout no longer matches, and
+  a box grown over the furniture scores as well. Off by default because the layout costs the
+  walk-across training scenes 0-1.5 points at weight 10 and more at the weights
+  that win Crossing. Its cost is small since ``grid_ncc`` (lattice corners
+  gathered per channel with the box axis minor, in blocks): 5.4 against 4.6 ms
+  at N = 10,000 and 20.4 against 12.8 ms at N = 100,000
+  (experiments/bench_colour.py, "layout" column; before it, 8.0 and 34 ms).
 * ``ColourConfig.layout_feature = "gradient"``: the layout cells hold gradient
   energy in four orientations (``layout_table``, a hard-binned HOG) instead of
   mean luminance: the figure's outline, which the luminance template loses when
@@ -93,13 +102,14 @@ them against the default in ``likelihood_terms``):
   99.8 / 73.3 (above CSRT's 95.0 / 70.0, but weight 20 was picked on Crossing
   itself and costs the training scenes). Gradient 6x2 at weight 20: Crossing
   100 / 73.3, training 94.3 / 86.0. Off by default: the weight that wins
-  Crossing loses on the training scenes, and the four-channel table and 52
-  four-channel corner gathers per particle make the step 2.4x slower at N =
-  10,000 (15.0 against 6.2 ms) and 9x at N = 100,000 (114 against 12 ms, 9
-  frames/s, below the 30 frames/s target; bench_colour.py, "gradient" column).
+  Crossing loses on the training scenes, and the 52 lattice corners of four
+  channels per particle make the step 2x slower at N = 10,000 (9.4 against 4.6
+  ms) and 3.5x at N = 100,000 (45 against 12.8 ms, 22 frames/s, below the 30
+  frames/s target; bench_colour.py, "gradient" column; 15.0 and 114 ms before
+  ``grid_ncc``).
   On the evaluation seeds (colour_tables.md, ``likelihood_terms``) gradient 12x3
-  at weight 20 keeps every walking scene >= 95 (97.2 / 95.2) and scores Crossing
-  99.8 / 73.3, but ``distractor_pass`` falls from 49.3 to 31.9.
+  at weight 20 keeps every walking scene >= 95 (97.2 / 95.3) and scores Crossing
+  99.8 / 73.3, but ``distractor_pass`` falls from 49.3 to 31.6.
 
 Bins: 8 x 8 H-S bins for chromatic pixels plus 8 value bins for achromatic
 (dark, grey, white) pixels whose hue is noise (``kernels.color.hsv_bin_index``);
