@@ -307,9 +307,7 @@ def grid_ncc(
         corners = lax.optimization_barrier(
             jnp.stack([planes[k].at[idx].get(mode="promise_in_bounds") for k in range(c)])
         )  # [c, rows + 1, cols + 1, n]
-        sums = (
-            corners[:, 1:, 1:] - corners[:, :-1, 1:] - corners[:, 1:, :-1] + corners[:, :-1, :-1]
-        )
+        sums = corners[:, 1:, 1:] - corners[:, :-1, 1:] - corners[:, 1:, :-1] + corners[:, :-1, :-1]
         area = (ys[1:] - ys[:-1])[:, None, :] * (xs[1:] - xs[:-1])[None, :, :]
         inv = 1.0 / jnp.maximum(area, 1).astype(jnp.float32)
         means = lax.optimization_barrier((sums.astype(jnp.float32) * inv).reshape(n_cells, n))

@@ -219,10 +219,8 @@ def test_grid_ncc_matches_numpy_under_jit_and_vmap(feature, grid):
     feat = lum if feature == "luminance" else _gradient_reference(lum)
     rng = np.random.default_rng(5)
     n = 37
-    boxes = np.stack(
-        [rng.uniform(-30, W, n), rng.uniform(-30, H, n), rng.uniform(4, 70, n), rng.uniform(4, 90, n)],
-        axis=1,
-    ).astype(np.float32)
+    lo, hi = [-30, -30, 4, 4], [W, H, 70, 90]
+    boxes = rng.uniform(lo, hi, (n, 4)).astype(np.float32)
     boxes[:4] = [box, [-10, -5, 40, 50], [W + 5, 10, 20, 30], [3.3, 7.6, 40.2, 70.9]]
     template = _layout_reference(feat, box, *grid)
     want = np.stack([_layout_reference(feat, b, *grid) for b in boxes]) @ template
