@@ -88,8 +88,9 @@ them against the default in ``likelihood_terms``):
   that win Crossing, and because, on by default at weight 10 (a scratch run of
   colour_tables.py, 2026-11-25), it lifts the random-walk tables (walking mean /
   worst 99.1 / 98.0) but lowers the AR1 ones: Table 3.5 at N = 50 plain 89.4,
-  hierarchical 86.4 (92.0 / 93.2 without it), below the 90 % target. Its cost is small since ``grid_ncc`` (lattice corners
-  gathered per channel with the box axis minor, in blocks): 5.4 against 4.6 ms
+  hierarchical 86.4 (92.0 / 93.2 without it), below the 90 % target. Its cost
+  is small since ``grid_ncc`` (lattice corners gathered per channel with the
+  box axis minor, in blocks): 5.4 against 4.6 ms
   at N = 10,000 and 20.4 against 12.8 ms at N = 100,000
   (experiments/bench_colour.py, "layout" column; before it, 8.0 and 34 ms).
 * ``ColourConfig.layout_feature = "gradient"``: the layout cells hold gradient
