@@ -226,6 +226,27 @@ def rect_sums(table: Array, rects: Array) -> Array:
     return row(0) - row(1) - row(2) + row(3)
 
 
+def _lattice_edges(
+    boxes: Array, rows: int, cols: int, height: int, width: int, box_axis_last: bool = False
+) -> tuple[Array, Array]:
+    """Cell edges ``ys [..., rows + 1]`` and ``xs [..., cols + 1]`` (int32) of a ``rows x
+    cols`` grid of equal cells of each ``(x, y, w, h)`` box in ``boxes [..., 4]``: rounded
+    like ``boxes.xywh_to_rect`` (``floor(v + 0.5)``) and clipped to a ``height x width``
+    frame. ``box_axis_last``: ``[rows + 1, ...]`` and ``[cols + 1, ...]`` instead (built
+    in that layout: a transposed copy costs more than the edges)."""
+    b = jnp.asarray(boxes, jnp.float32)
+
+    def edges(start: Array, size: Array, n: int, limit: int) -> Array:
+        f = jnp.arange(n + 1, dtype=jnp.float32) / n
+        if box_axis_last:
+            v = start[None] + size[None] * f.reshape(-1, *([1] * start.ndim))
+        else:
+            v = start[..., None] + size[..., None] * f
+        return jnp.clip(jnp.floor(v + 0.5), 0, limit).astype(jnp.int32)
+
+    return edges(b[..., 1], b[..., 3], rows, height), edges(b[..., 0], b[..., 2], cols, width)
+
+
 def grid_sums(table: Array, boxes: Array, rows: int, cols: int) -> Array:
     """Sums ``[..., rows, cols, c]`` over a ``rows x cols`` grid of equal cells of each
     ``(x, y, w, h)`` box in ``boxes [..., 4]``, from an ``integral_image`` table
@@ -239,13 +260,7 @@ def grid_sums(table: Array, boxes: Array, rows: int, cols: int) -> Array:
     cells (``4 rows cols`` corner reads per box would be 2-3x more).
     """
     height, width = table.shape[0] - 1, table.shape[1] - 1
-    b = jnp.asarray(boxes, jnp.float32)
-    fy = jnp.arange(rows + 1, dtype=jnp.float32) / rows
-    fx = jnp.arange(cols + 1, dtype=jnp.float32) / cols
-    ys = jnp.floor(b[..., 1:2] + b[..., 3:4] * fy + 0.5)  # [..., rows + 1]
-    xs = jnp.floor(b[..., 0:1] + b[..., 2:3] * fx + 0.5)  # [..., cols + 1]
-    ys = jnp.clip(ys, 0, height).astype(jnp.int32)
-    xs = jnp.clip(xs, 0, width).astype(jnp.int32)
+    ys, xs = _lattice_edges(boxes, rows, cols, height, width)
     idx = lax.optimization_barrier(ys[..., :, None] * (width + 1) + xs[..., None, :])
     flat = table.reshape(-1, table.shape[-1])
     corners = flat.at[idx].get(mode="promise_in_bounds")  # [..., rows + 1, cols + 1, c]
@@ -289,11 +304,7 @@ def grid_ncc(
     height, width = table.shape[0] - 1, table.shape[1] - 1
     c = table.shape[-1]
     n_cells = rows * cols * c
-    b = jnp.asarray(boxes, jnp.float32).T  # [4, N]
-    fy = (jnp.arange(rows + 1, dtype=jnp.float32) / rows)[:, None]
-    fx = (jnp.arange(cols + 1, dtype=jnp.float32) / cols)[:, None]
-    ys = jnp.clip(jnp.floor(b[1] + b[3] * fy + 0.5), 0, height).astype(jnp.int32)
-    xs = jnp.clip(jnp.floor(b[0] + b[2] * fx + 0.5), 0, width).astype(jnp.int32)
+    ys, xs = _lattice_edges(boxes, rows, cols, height, width, box_axis_last=True)
     ys, xs = lax.optimization_barrier((ys, xs))  # [rows + 1, N], [cols + 1, N]
     planes = jnp.moveaxis(table, -1, 0).reshape(c, -1)
     # Channel-major cells, to match the stacked planes below.
