@@ -29,6 +29,7 @@ bench: $(STAMP)
 
 experiments: $(STAMP)
 	$(BIN)/python experiments/colour_tables.py
+	$(BIN)/python experiments/tune_colour.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info demo.rrd demo_boxes.csv

@@ -189,6 +189,14 @@ def resample_if(
     log-weights are uniform; otherwise the normalised log-weights are kept.
     ``threshold = 1`` resamples every frame (SIR, thesis 2.1) except when the
     weights are exactly uniform; ``threshold = 0`` never resamples.
+
+    Gradients: the uniform log-weights after resampling are ``-log N + l_a -
+    stop_gradient(l_a)``, with ``l_a`` each particle's ancestor's log-weight
+    (Scibior and Wood 2021, "Differentiable particle filtering without modifying
+    the forward pass"). The value is exactly ``-log N``; the derivative is that of
+    ``l_a``, so gradients of weighted estimates at later frames reach the
+    likelihoods of earlier ones (``cpf_jax.tuning``) instead of stopping at the
+    discrete ancestor draw. The indices themselves carry no gradient.
     """
     n = log_weights.shape[0]
     lw = normalise_log_weights(log_weights)
@@ -198,7 +206,11 @@ def resample_if(
     def _resample(_):
         idx = scheme(key, lw, n)
         taken = jax.tree_util.tree_map(lambda x: jnp.take(x, idx, axis=0), particles)
-        return taken, jnp.full_like(lw, -jnp.log(jnp.float32(n)))
+        ancestor = jnp.take(lw, idx)
+        # 0 in value (an ancestor is never drawn with weight 0 unless all are invalid,
+        # when lw is uniform and finite); the guard keeps -inf - -inf out anyway.
+        carried = jnp.where(jnp.isfinite(ancestor), ancestor - jax.lax.stop_gradient(ancestor), 0.0)
+        return taken, jnp.full_like(lw, -jnp.log(jnp.float32(n))) + carried
 
     def _keep(_):
         return particles, lw

@@ -169,3 +169,29 @@ def test_systematic_equals_a_search_of_its_positions(num):
     batched = jax.vmap(lambda k: rs.systematic(k, jnp.zeros(n)))(keys)
     assert batched.shape == (8, n)
     np.testing.assert_array_equal(np.asarray(batched[0]), np.arange(n))
+
+
+@pytest.mark.parametrize("name", ["systematic", "multinomial"])
+def test_resample_if_carries_unbiased_gradients(name):
+    """After resampling, the log-weights are -log N in value but carry the ancestors'
+    derivatives (Scibior and Wood 2021): the gradient of the resampled mean of x,
+    averaged over keys, is the gradient of the weighted mean sum_i w_i(theta) x_i."""
+    x = jnp.asarray([1.0, -2.0, 0.5, 3.0, -1.0, 2.0])
+    s = jnp.asarray([0.2, -1.0, 0.7, 1.5, 0.0, -0.4])
+
+    def resampled_mean(theta, key):
+        lw = rs.normalise_log_weights(theta * s)
+        p, lw1, did = rs.resample_if(key, lw, x, 1.0, rs.SCHEMES[name])
+        return jnp.sum(jnp.exp(lw1) * p), lw1
+
+    keys = jax.random.split(jax.random.PRNGKey(3), 20_000)
+    grad_fn = jax.jit(jax.vmap(jax.grad(lambda t, k: resampled_mean(t, k)[0]), (None, 0)))
+    grads = np.asarray(grad_fn(jnp.float32(0.8), keys))
+    w = jax.nn.softmax(0.8 * s)
+    exact = float(jnp.sum(w * x * (s - jnp.sum(w * s))))  # d/dtheta sum_i w_i x_i
+    se = grads.std() / np.sqrt(grads.size)
+    assert abs(grads.mean() - exact) < 4 * se + 1e-4, (grads.mean(), exact, se)
+    assert abs(exact) > 10 * se  # the check can fail: the gradient is far from 0
+    # The forward pass is unchanged: uniform log-weights exactly.
+    _, lw1 = jax.jit(resampled_mean)(jnp.float32(0.8), keys[0])
+    np.testing.assert_array_equal(np.asarray(lw1), np.full(6, -np.log(np.float32(6)), np.float32))

@@ -1,0 +1,335 @@
+"""Gradient-based tuning of filter parameters with optax (SPEC C7).
+
+Usage::
+
+    from cpf_jax import tuning
+    from cpf_jax.colour import PARAM_CONSTRAINTS, ColourConfig, default_colour_params
+
+    data = tuning.stack_sequences([make_sequence("walk_across_medium", seed=s, n_frames=60)
+                                   for s in (100, 101, 102)])
+    run = tuning.colour_runner(config)      # (params, key, sequence) -> [T, 4] boxes
+    result = tuning.tune(run, default_colour_params(), PARAM_CONSTRAINTS, data,
+                         names=("sigma", "contrast_weight"), steps=40)
+    result.params, result.history           # tuned parameters, loss per step
+
+What is differentiated
+----------------------
+The loss is the mean DIoU loss (``diou_loss``; Zheng et al. 2020: ``1 - IoU`` plus the
+squared centre distance over the squared diagonal of the smallest box enclosing both,
+so it still has a gradient when the boxes do not overlap) of the filter's boxes against
+the ground truth, over the sequences of a ``TuningData`` batch and ``keys`` filter seeds
+each. The filters' estimates are weighted means of their particles, so the gradient
+reaches every parameter of the likelihood through the importance weights
+(``sigma``, ``contrast_weight``, ``layout_weight``, the aspect prior; in the RGB-D
+filter the per-cell terms, floors, the occlusion prior and the flag transitions).
+Across frames the gradient passes resampling by the estimator of Scibior and Wood
+(2021), built into ``kernels.resample.resample_if``: the forward pass is unchanged
+(every filter computes exactly what it computes untuned) and the resampled log-weights
+carry their ancestors' derivatives.
+
+What is not: the histogram and cell counts are exact integer counts over pixel
+rects, piecewise constant in a box's coordinates, so the likelihood has no
+derivative with respect to where a particle is. Parameters that act only by moving
+particles (the motion noise ``tau``, the sampling shape ``motion``) get the part of
+their gradient that flows through the weighted mean of the moved particles, not the
+part through the likelihood of where they land: a biased gradient. Tune them by
+search, or with care. Discrete choices (grid size, bins, motion model) live in the
+static configs and are not tuned here.
+
+Parameters are optimised unconstrained: each module's ``PARAM_CONSTRAINTS`` names a
+bijector per field (``"softplus"`` for positive, ``"sigmoid"`` for ``(0, 1)``,
+``"identity"``; ``None`` marks a field that cannot be tuned), applied leaf-wise to
+nested parameter tuples such as ``MotionParams``. A step whose loss or gradient is not
+finite is skipped (the parameters keep their last finite values and the history
+records it), so a tuning run never ends on NaN parameters.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax import Array
+
+from cpf_jax.types import Frame
+
+__all__ = [
+    "BIJECTORS",
+    "TuningData",
+    "TuneResult",
+    "stack_sequences",
+    "to_unconstrained",
+    "to_params",
+    "diou_loss",
+    "colour_runner",
+    "rgbd_runner",
+    "make_loss",
+    "tune",
+]
+
+
+def _softplus_inverse(p: Array) -> Array:
+    # log(exp(p) - 1), stable for large p: p + log(1 - exp(-p)).
+    p = jnp.asarray(p, jnp.float32)
+    return p + jnp.log(-jnp.expm1(-p))
+
+
+def _logit(p: Array) -> Array:
+    p = jnp.asarray(p, jnp.float32)
+    return jnp.log(p) - jnp.log1p(-p)
+
+
+#: ``kind -> (constrain, unconstrain)``: maps between the optimiser's free values and
+#: the parameters' domains.
+BIJECTORS: dict[str, tuple[Callable[[Array], Array], Callable[[Array], Array]]] = {
+    "identity": (lambda u: u, lambda p: jnp.asarray(p, jnp.float32)),
+    "softplus": (jax.nn.softplus, _softplus_inverse),
+    "sigmoid": (jax.nn.sigmoid, _logit),
+}
+
+
+class TuningData(NamedTuple):
+    """A batch of ``S`` sequences of equal length ``T`` and frame size (stacked on axis 0)."""
+
+    frames: Frame  # [S, T, ...]
+    boxes: Array  # [S, T, 4] ground-truth xywh; the filters start from boxes[:, 0]
+    visible: Array  # [S, T] bool: frames that count in the loss
+    background: Any = None  # the RGB-D filter's per-sequence Background ([S, ...]) or None
+
+
+class TuneResult(NamedTuple):
+    params: Any  # the tuned parameters (the last finite step)
+    history: list  # one dict per step: step, loss, skipped, seconds, and each tuned value
+
+
+def stack_sequences(sequences: Sequence, backgrounds: Sequence | None = None) -> TuningData:
+    """``TuningData`` from sequences with ``colour``, ``depth``, ``boxes`` and ``visible``
+    (``cpf_jax.synthetic.SyntheticSequence``, ``cpf_jax.io`` recordings), all of one
+    length and frame size (cut them with ``make_sequence(..., n_frames=T)``)."""
+    if not sequences:
+        raise ValueError("stack_sequences needs at least one sequence")
+    shapes = {(np.shape(s.colour), np.shape(s.depth)) for s in sequences}
+    if len(shapes) != 1:
+        raise ValueError(
+            f"sequences differ in length or frame size {sorted(shapes)}: "
+            "cut them to one length (make_sequence(..., n_frames=T))"
+        )
+    frames = Frame(
+        jnp.asarray(np.stack([s.colour for s in sequences])),
+        jnp.asarray(np.stack([s.depth for s in sequences])),
+    )
+    boxes = jnp.asarray(np.stack([s.boxes for s in sequences]), jnp.float32)
+    visible = jnp.asarray(np.stack([s.visible for s in sequences]), bool)
+    background = None
+    if backgrounds is not None:
+        if len(backgrounds) != len(sequences):
+            raise ValueError(f"{len(backgrounds)} backgrounds for {len(sequences)} sequences")
+        background = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *backgrounds)
+    return TuningData(frames, boxes, visible, background)
+
+
+def _field_constraint(constraints: NamedTuple, name: str):
+    if name not in constraints._fields:
+        raise ValueError(
+            f"unknown parameter {name!r}; expected one of {', '.join(constraints._fields)}"
+        )
+    kind = getattr(constraints, name)
+    if kind is None:
+        raise ValueError(f"parameter {name!r} cannot be tuned (its constraint is None)")
+    for leaf in jax.tree_util.tree_leaves(kind):
+        if leaf not in BIJECTORS:
+            raise ValueError(f"parameter {name!r}: unknown constraint {leaf!r}")
+    return kind
+
+
+def _map_kind(fn_index: int, kind, value):
+    """Apply the bijector ``kind`` (a string, or a tuple of strings for a nested field)."""
+    if isinstance(kind, str):
+        return jax.tree_util.tree_map(lambda v: BIJECTORS[kind][fn_index](v), value)
+    return type(kind)(*(_map_kind(fn_index, k, v) for k, v in zip(kind, value, strict=True)))
+
+
+def to_unconstrained(params: NamedTuple, constraints: NamedTuple, names: Sequence[str]) -> dict:
+    """``{name: free value}`` of the named fields of ``params`` (the optimiser's variables).
+
+    A value on the boundary of its domain (0 for ``"softplus"``, 0 or 1 for
+    ``"sigmoid"``) has no finite free value: start it inside (e.g. 1e-3) to tune it.
+    """
+    free = {}
+    for n in names:
+        kind = _field_constraint(constraints, n)
+        value = getattr(params, n)
+        u = _map_kind(1, kind, value)
+        if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(u)):
+            raise ValueError(
+                f"parameter {n!r} = {np.asarray(jax.tree_util.tree_leaves(value)).ravel().tolist()}"
+                " is on the boundary of its constraint: start it inside to tune it"
+            )
+        free[n] = u
+    return free
+
+
+def to_params(free: dict, params: NamedTuple, constraints: NamedTuple) -> NamedTuple:
+    """``params`` with the fields of ``free`` mapped back into their domains."""
+    return params._replace(
+        **{n: _map_kind(0, _field_constraint(constraints, n), u) for n, u in free.items()}
+    )
+
+
+def diou_loss(pred: Array, gt: Array, visible: Array | None = None) -> Array:
+    """Mean DIoU loss of ``[T, 4]`` xywh boxes over the ``visible`` frames.
+
+    Per frame ``1 - IoU + |c_pred - c_gt|^2 / d^2``, with ``d`` the diagonal of the
+    smallest box enclosing both (Zheng et al., AAAI 2020): 0 for equal boxes, up to
+    2 for distant ones, with a gradient even without overlap. No visible frame: 0.
+    """
+    pred = jnp.asarray(pred, jnp.float32)
+    gt = jnp.asarray(gt, jnp.float32)
+    p0, p1 = pred[..., :2], pred[..., :2] + pred[..., 2:]
+    g0, g1 = gt[..., :2], gt[..., :2] + gt[..., 2:]
+    wh = jnp.maximum(jnp.minimum(p1, g1) - jnp.maximum(p0, g0), 0.0)
+    inter = wh[..., 0] * wh[..., 1]
+    area_p = jnp.maximum(pred[..., 2], 0.0) * jnp.maximum(pred[..., 3], 0.0)
+    area_g = jnp.maximum(gt[..., 2], 0.0) * jnp.maximum(gt[..., 3], 0.0)
+    union = area_p + area_g - inter
+    iou = inter / jnp.maximum(union, 1e-6)
+    centre = jnp.sum(((p0 + p1) - (g0 + g1)) ** 2, axis=-1) / 4.0
+    diag = jnp.sum((jnp.maximum(p1, g1) - jnp.minimum(p0, g0)) ** 2, axis=-1)
+    per_frame = 1.0 - iou + centre / jnp.maximum(diag, 1e-6)
+    if visible is None:
+        return jnp.mean(per_frame, axis=-1)
+    w = jnp.asarray(visible, jnp.float32)
+    return jnp.sum(per_frame * w, axis=-1) / jnp.maximum(jnp.sum(w, axis=-1), 1.0)
+
+
+def colour_runner(config) -> Callable:
+    """``run(params, key, sequence) -> [T, 4]`` boxes of the colour filter (``config``:
+    a ``ColourConfig``; ``sequence``: one element of a ``TuningData``)."""
+    from cpf_jax.colour import build_colour_filter, track_boxes
+
+    filt = build_colour_filter(config)
+
+    def run(params, key: Array, seq: TuningData) -> Array:
+        return track_boxes(filt, params, key, seq.frames, seq.boxes[0])
+
+    return run
+
+
+def rgbd_runner(config, box: str = "estimate") -> Callable:
+    """``run(params, key, sequence) -> [T, 4]`` boxes of the RGB-D filter (``config``: an
+    ``RGBDConfig``; ``sequence``: one element of a ``TuningData`` with a background).
+
+    ``box="estimate"`` (default): the weighted-mean estimate, through which the
+    gradient reaches the likelihood. ``"report"``: the reported box (what the
+    tables score); with ``config.report = "pixels"`` it is the tight box of the
+    target's pixels around the estimate, which has no derivative with respect to
+    any parameter, and frames with no report (``lost``) fall back to the estimate.
+    """
+    from cpf_jax.rgbd import build_rgbd_filter, track
+
+    if box not in ("estimate", "report"):
+        raise ValueError(f"box must be 'estimate' or 'report', got {box!r}")
+    filt = build_rgbd_filter(config)
+
+    def run(params, key: Array, seq: TuningData) -> Array:
+        _, infos = track(filt, params, key, seq.frames, seq.boxes[0], seq.background)
+        boxes = infos.estimate
+        if box == "report":
+            boxes = jnp.where(infos.lost[:, None], infos.estimate, infos.report)
+        return jnp.concatenate([seq.boxes[:1], boxes], axis=0)
+
+    return run
+
+
+def make_loss(run: Callable, constraints: NamedTuple, keys: int = 1) -> Callable:
+    """``loss(free, params, key, data) -> scalar``: the mean ``diou_loss`` over the
+    sequences of ``data`` (``lax.map``: one at a time, bounded memory) and ``keys``
+    filter seeds each, with ``params`` updated from the free values ``free``."""
+
+    def loss(free: dict, params, key: Array, data: TuningData) -> Array:
+        p = to_params(free, params, constraints)
+        n_seq = data.boxes.shape[0]
+        seq_keys = jax.random.split(key, n_seq * keys).reshape(n_seq, keys, -1)
+
+        def one(xs):
+            seq, ks = xs
+            # lax.map, not vmap, over seeds too: under vmap the histogram kernels'
+            # lax.cond (windowed fast path or whole-frame fallback) runs both branches.
+            per_key = jax.lax.map(lambda k: diou_loss(run(p, k, seq), seq.boxes, seq.visible), ks)
+            return jnp.mean(per_key)
+
+        return jnp.mean(jax.lax.map(one, (data, seq_keys)))
+
+    return loss
+
+
+def tune(
+    run: Callable,
+    params: NamedTuple,
+    constraints: NamedTuple,
+    data: TuningData,
+    names: Sequence[str],
+    *,
+    optimizer: optax.GradientTransformation | None = None,
+    steps: int = 40,
+    keys: int = 1,
+    key: Array | None = None,
+    callback: Callable[[dict], None] | None = None,
+) -> TuneResult:
+    """Tune the fields ``names`` of ``params`` by ``steps`` optimiser steps on ``data``.
+
+    ``run(params, key, sequence) -> [T, 4]`` (``colour_runner``, ``rgbd_runner``, or
+    your own); ``constraints``: the module's ``PARAM_CONSTRAINTS``; ``optimizer``: any
+    optax transformation (default ``optax.adam(0.05)`` on the free values). Every
+    step draws fresh filter seeds (``keys`` per sequence), so the loss is a
+    stochastic estimate: compare results on held-out sequences and seeds. One
+    compile, then each step runs one jitted forward and backward pass. ``callback``
+    gets each step's history entry (e.g. to print progress).
+    """
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got {steps}")
+    if not names:
+        raise ValueError("names: give at least one parameter to tune")
+    optimizer = optimizer or optax.adam(0.05)
+    key = jax.random.PRNGKey(0) if key is None else key
+    free = to_unconstrained(params, constraints, names)
+    loss = make_loss(run, constraints, keys)
+    opt_state = optimizer.init(free)
+
+    # params and data are arguments, not closed-over constants: XLA would otherwise
+    # embed every frame in the compiled program.
+    @jax.jit
+    def update(free, opt_state, key, params, data):
+        value, grads = jax.value_and_grad(loss)(free, params, key, data)
+        leaves = jax.tree_util.tree_leaves(grads)
+        ok = jnp.isfinite(value) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(g)) for g in leaves]))
+        updates, new_opt = optimizer.update(grads, opt_state, free)
+        new_free = optax.apply_updates(free, updates)
+        keep = lambda new, old: jax.tree_util.tree_map(  # noqa: E731
+            lambda a, b: jnp.where(ok, a, b), new, old
+        )
+        return keep(new_free, free), keep(new_opt, opt_state), value, ~ok
+
+    history = []
+    for step in range(steps):
+        t0 = time.perf_counter()
+        key, k = jax.random.split(key)
+        free, opt_state, value, skipped = update(free, opt_state, k, params, data)
+        tuned = to_params(free, params, constraints)
+        entry = {
+            "step": step,
+            "loss": float(value),
+            "skipped": bool(skipped),
+            "seconds": time.perf_counter() - t0,
+        }
+        for n in names:
+            entry[n] = np.asarray(getattr(tuned, n)).tolist()
+        history.append(entry)
+        if callback is not None:
+            callback(entry)
+    return TuneResult(to_params(free, params, constraints), history)
