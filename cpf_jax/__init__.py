@@ -3,8 +3,9 @@
 Layer 1 (``cpf_jax.colour``) tracks the person's box with H-S colour
 histograms; the kernels it is built from live in ``cpf_jax.kernels``. Frame
 sources and results files are in ``cpf_jax.io``, metrics in
-``cpf_jax.metrics``, Rerun logging in ``cpf_jax.viz`` and synthetic RGB-D
-sequences with ground truth in ``cpf_jax.synthetic``.
+``cpf_jax.metrics``, Rerun logging in ``cpf_jax.viz``, synthetic RGB-D
+sequences with ground truth in ``cpf_jax.synthetic`` and gradient tuning of the
+filters' parameters with optax in ``cpf_jax.tuning``.
 
 Importing the package changes no global JAX configuration.
 """
