@@ -254,7 +254,8 @@ def make_loss(run: Callable, constraints: NamedTuple, keys: int = 1) -> Callable
     def loss(free: dict, params, key: Array, data: TuningData) -> Array:
         p = to_params(free, params, constraints)
         n_seq = data.boxes.shape[0]
-        seq_keys = jax.random.split(key, n_seq * keys).reshape(n_seq, keys, -1)
+        split = jax.random.split(key, n_seq * keys)  # raw [n, 2] or typed [n] keys
+        seq_keys = split.reshape(n_seq, keys, *split.shape[1:])
 
         def one(xs):
             seq, ks = xs
