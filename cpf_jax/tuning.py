@@ -286,7 +286,9 @@ def tune(
 
     ``run(params, key, sequence) -> [T, 4]`` (``colour_runner``, ``rgbd_runner``, or
     your own); ``constraints``: the module's ``PARAM_CONSTRAINTS``; ``optimizer``: any
-    optax transformation (default ``optax.adam(0.05)`` on the free values). Every
+    optax transformation (default ``optax.adam(0.05)``) on the free values divided by
+    ``max(|free value at the start|, 1)``, so that its steps are relative for large
+    values (a learning rate of 0.05 moves a weight of 28 by about 1.4). Every
     step draws fresh filter seeds (``keys`` per sequence), so the loss is a
     stochastic estimate: compare results on held-out sequences and seeds. One
     compile, then each step runs one jitted forward and backward pass. ``callback``
@@ -299,14 +301,26 @@ def tune(
     optimizer = optimizer or optax.adam(0.05)
     key = jax.random.PRNGKey(0) if key is None else key
     free = to_unconstrained(params, constraints, names)
+    # The optimiser's variables are the free values divided by max(|u0|, 1): a step of
+    # size lr changes a parameter whose free value is large (a weight of 28, a floor of
+    # -12, a depth width of 100 mm) by about lr of itself, not by lr in absolute terms.
+    scales = jax.tree_util.tree_map(lambda u: jnp.maximum(jnp.abs(u), 1.0), free)
     loss = make_loss(run, constraints, keys)
+
+    def scaled_loss(v, params, key, data):
+        return loss(jax.tree_util.tree_map(jnp.multiply, v, scales), params, key, data)
+
+    def unscale(v):
+        return jax.tree_util.tree_map(jnp.multiply, v, scales)
+
+    free = jax.tree_util.tree_map(jnp.divide, free, scales)
     opt_state = optimizer.init(free)
 
     # params and data are arguments, not closed-over constants: XLA would otherwise
     # embed every frame in the compiled program.
     @jax.jit
     def update(free, opt_state, key, params, data):
-        value, grads = jax.value_and_grad(loss)(free, params, key, data)
+        value, grads = jax.value_and_grad(scaled_loss)(free, params, key, data)
         leaves = jax.tree_util.tree_leaves(grads)
         ok = jnp.isfinite(value) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(g)) for g in leaves]))
         updates, new_opt = optimizer.update(grads, opt_state, free)
@@ -321,7 +335,7 @@ def tune(
         t0 = time.perf_counter()
         key, k = jax.random.split(key)
         free, opt_state, value, skipped = update(free, opt_state, k, params, data)
-        tuned = to_params(free, params, constraints)
+        tuned = to_params(unscale(free), params, constraints)
         entry = {
             "step": step,
             "loss": float(value),
@@ -333,4 +347,4 @@ def tune(
         history.append(entry)
         if callback is not None:
             callback(entry)
-    return TuneResult(to_params(free, params, constraints), history)
+    return TuneResult(to_params(unscale(free), params, constraints), history)

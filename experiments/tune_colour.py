@@ -128,12 +128,12 @@ def main() -> None:
             run_res[when] = held_out(config, p, eval_seeds, eval_keys)
             print(label, when, json.dumps(run_res[when]), flush=True)
         res["runs"][label] = run_res
-
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1))
-    out.with_suffix(".md").write_text(_markdown(res))
-    print(f"wrote {out} and {out.with_suffix('.md')}")
+        # Written after each start: an interrupted run keeps the finished ones.
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(res, indent=1))
+        out.with_suffix(".md").write_text(_markdown(res))
+        print(f"wrote {out} and {out.with_suffix('.md')}", flush=True)
 
 
 def _markdown(res: dict) -> str:
