@@ -103,7 +103,7 @@ class TuningData(NamedTuple):
 
 
 class TuneResult(NamedTuple):
-    params: Any  # the tuned parameters (the last finite step)
+    params: Any  # the tuned parameters (the last finite step, or the best on validation)
     history: list  # one dict per step: step, loss, skipped, seconds, and each tuned value
 
 
@@ -281,6 +281,8 @@ def tune(
     keys: int = 1,
     key: Array | None = None,
     callback: Callable[[dict], None] | None = None,
+    validation: TuningData | None = None,
+    validate_every: int = 5,
 ) -> TuneResult:
     """Tune the fields ``names`` of ``params`` by ``steps`` optimiser steps on ``data``.
 
@@ -293,6 +295,11 @@ def tune(
     stochastic estimate: compare results on held-out sequences and seeds. One
     compile, then each step runs one jitted forward and backward pass. ``callback``
     gets each step's history entry (e.g. to print progress).
+
+    ``validation`` (other sequences than ``data``): its loss, with one fixed key, is
+    computed at the start and every ``validate_every`` steps (history entries get
+    ``"validation"``), and the result is the parameters with the lowest validation
+    loss seen (early stopping), not the last ones.
     """
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
@@ -330,6 +337,10 @@ def tune(
         )
         return keep(new_free, free), keep(new_opt, opt_state), value, ~ok
 
+    if validation is not None:
+        val_key = jax.random.fold_in(key, 1)
+        val_loss = jax.jit(lambda v, params, data: scaled_loss(v, params, val_key, data))
+        best = (float(val_loss(free, params, validation)), free)
     history = []
     for step in range(steps):
         t0 = time.perf_counter()
@@ -344,7 +355,13 @@ def tune(
         }
         for n in names:
             entry[n] = np.asarray(getattr(tuned, n)).tolist()
+        if validation is not None and ((step + 1) % validate_every == 0 or step == steps - 1):
+            entry["validation"] = float(val_loss(free, params, validation))
+            if entry["validation"] < best[0]:
+                best = (entry["validation"], free)
         history.append(entry)
         if callback is not None:
             callback(entry)
+    if validation is not None:
+        free = best[1]
     return TuneResult(to_params(unscale(free), params, constraints), history)

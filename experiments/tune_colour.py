@@ -11,6 +11,10 @@ two starting points:
   of 28; the thesis has none);
 * ``defaults``: the library's hand-set defaults (sigma 0.15, found by grid search).
 
+Early stopping: every 5 steps the loss on validation scenes (the same scenarios with
+scene seeds 102-103, one fixed filter seed) is computed, and the result is the
+parameters with the lowest validation loss (the start included).
+
 Each result is checked on held-out data: the walking scenarios with the evaluation
 scene seeds of ``colour_tables.py`` (0, 1, 2; full length), 3 filter seeds, N = 100,
 and OTB Crossing (5 seeds) when ``../shared/data`` is there. Writes
@@ -41,6 +45,7 @@ from cpf_jax.synthetic import make_sequence  # noqa: E402
 
 NAMES = ("sigma", "contrast_weight", "aspect_sigma")
 TRAIN_SEEDS = (100, 101)
+VALIDATION_SEEDS = (102, 103)  # early stopping: the parameters with the lowest loss on these
 TRAIN_FRAMES = 60
 EVAL_SEEDS = (0, 1, 2)
 
@@ -72,6 +77,9 @@ def main() -> None:
     eval_keys = 1 if args.quick else 3
     seqs = [make_sequence(n, seed=s, n_frames=TRAIN_FRAMES) for n in names for s in TRAIN_SEEDS]
     data = tuning.stack_sequences(seqs)
+    validation = tuning.stack_sequences(
+        [make_sequence(n, seed=s, n_frames=TRAIN_FRAMES) for n in names for s in VALIDATION_SEEDS]
+    )
     config = ct._window_config(ColourConfig(n_particles=100), ct.WALKING[0])
     run = tuning.colour_runner(config)
     loss = jax.jit(tuning.make_loss(run, PARAM_CONSTRAINTS))
@@ -85,7 +93,12 @@ def main() -> None:
     }
     res = {
         "names": list(NAMES),
-        "train": {"scenes": list(names), "seeds": list(TRAIN_SEEDS), "frames": TRAIN_FRAMES},
+        "train": {
+            "scenes": list(names),
+            "seeds": list(TRAIN_SEEDS),
+            "validation_seeds": list(VALIDATION_SEEDS),
+            "frames": TRAIN_FRAMES,
+        },
         "held_out": {"seeds": list(eval_seeds), "keys": eval_keys, "n_particles": 100},
         "optimizer": f"adam({args.lr})",
         "steps": steps,
@@ -96,7 +109,8 @@ def main() -> None:
 
         def show(e, label=label):
             vals = " ".join(f"{n} {e[n]:.3f}" for n in NAMES)
-            print(f"{label} step {e['step']:3d} loss {e['loss']:.4f} {vals}", flush=True)
+            val = f" validation {e['validation']:.4f}" if "validation" in e else ""
+            print(f"{label} step {e['step']:3d} loss {e['loss']:.4f} {vals}{val}", flush=True)
 
         result = tuning.tune(
             run,
@@ -108,6 +122,8 @@ def main() -> None:
             steps=steps,
             key=jax.random.PRNGKey(0),
             callback=show,
+            validation=validation,
+            validate_every=5,
         )
         seconds = time.perf_counter() - t0
 
@@ -122,7 +138,10 @@ def main() -> None:
             "train_loss_after": train_loss(result.params),
             "tune_seconds": seconds,
             "skipped_steps": sum(e["skipped"] for e in result.history),
-            "history": [{k: e[k] for k in ("step", "loss", *NAMES)} for e in result.history],
+            "history": [
+                {k: e[k] for k in ("step", "loss", "validation", *NAMES) if k in e}
+                for e in result.history
+            ],
         }
         for when, p in (("held_out_before", p0), ("held_out_after", result.params)):
             run_res[when] = held_out(config, p, eval_seeds, eval_keys)
@@ -142,7 +161,8 @@ def _markdown(res: dict) -> str:
         "",
         f"Tuned: {', '.join(res['names'])}; {res['optimizer']}, {res['steps']} steps, DIoU loss; "
         f"training scenes {', '.join(res['train']['scenes'])} with scene seeds "
-        f"{res['train']['seeds']} (first {res['train']['frames']} frames). Held out: the "
+        f"{res['train']['seeds']} (first {res['train']['frames']} frames), early stopping on "
+        f"scene seeds {res['train']['validation_seeds']}. Held out: the "
         f"walking scenarios with scene seeds {res['held_out']['seeds']} x "
         f"{res['held_out']['keys']} filter seeds, full length, N = 100; OTB Crossing (5 seeds).",
         "",

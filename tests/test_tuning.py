@@ -212,3 +212,35 @@ def test_stack_sequences_rejects_mixed_lengths():
     b = a._replace(colour=a.colour[:3], depth=a.depth[:3])
     with pytest.raises(ValueError, match="differ in length or frame size"):
         tuning.stack_sequences([a, b])
+
+
+def test_tune_with_validation_returns_the_best_validated_parameters(walk):
+    data, config = walk
+    train = jax.tree_util.tree_map(lambda x: x[:1], data)
+    val = jax.tree_util.tree_map(lambda x: x[1:], data)
+    run = tuning.colour_runner(config)
+    start = default_colour_params()._replace(
+        sigma=jnp.float32(1.0), contrast_weight=jnp.float32(2.0)
+    )
+    key = jax.random.PRNGKey(5)
+    result = tuning.tune(
+        run,
+        start,
+        PARAM_CONSTRAINTS,
+        train,
+        ("sigma",),
+        optimizer=optax.adam(0.4),
+        steps=6,
+        key=key,
+        validation=val,
+        validate_every=2,
+    )
+    checked = [e for e in result.history if "validation" in e]
+    assert [e["step"] for e in checked] == [1, 3, 5]
+    loss = tuning.make_loss(run, PARAM_CONSTRAINTS)
+    free0 = tuning.to_unconstrained(start, PARAM_CONSTRAINTS, ("sigma",))
+    v0 = float(jax.jit(loss)(free0, start, jax.random.fold_in(key, 1), val))
+    candidates = [(v0, float(start.sigma))] + [(e["validation"], e["sigma"]) for e in checked]
+    best_sigma = min(candidates)[1]
+    assert float(result.params.sigma) == pytest.approx(best_sigma, rel=1e-5)
+    assert min(candidates)[0] < v0  # the check can fail: tuning helped on validation
