@@ -305,6 +305,8 @@ def tune(
         raise ValueError(f"steps must be >= 0, got {steps}")
     if not names:
         raise ValueError("names: give at least one parameter to tune")
+    if validate_every < 1:
+        raise ValueError(f"validate_every must be >= 1, got {validate_every}")
     optimizer = optimizer or optax.adam(0.05)
     key = jax.random.PRNGKey(0) if key is None else key
     free = to_unconstrained(params, constraints, names)
