@@ -108,6 +108,8 @@ def test_diou_loss_matches_numpy_under_jit_and_vmap():
     want = [_diou_numpy(pred[i], gt[i], visible[i]) for i in range(2)]
     np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5)
     assert float(tuning.diou_loss(gt[0], gt[0])) == pytest.approx(0.0, abs=1e-6)
+    # A box on its target has a finite gradient (no sqrt of a zero centre distance).
+    assert np.all(np.isfinite(np.asarray(jax.grad(tuning.diou_loss)(jnp.asarray(gt[0]), gt[0]))))
     # Without overlap the loss exceeds 1 and still has a gradient towards the target.
     g = jax.grad(lambda b: tuning.diou_loss(b[None], gt[0, :1]))(jnp.asarray(pred[0, 0]))
     assert np.all(np.asarray(g[:2]) > 0)  # moving the far box up-left lowers the loss
