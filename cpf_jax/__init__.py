@@ -1,7 +1,10 @@
 """cpf_jax: cascaded particle-filter tracking of people in RGB-D video, as pure jitted JAX.
 
 Layer 1 (``cpf_jax.colour``) tracks the person's box with H-S colour
-histograms; the kernels it is built from live in ``cpf_jax.kernels``. Frame
+histograms (``cpf_jax.rgbd`` adds depth, grid cells and occlusion flags);
+layer 2 (``cpf_jax.points``) tracks points on the body in depth, and
+``cpf_jax.cascade`` runs both in one jitted step. The kernels they are built
+from live in ``cpf_jax.kernels``. Frame
 sources and results files are in ``cpf_jax.io``, metrics in
 ``cpf_jax.metrics``, Rerun logging in ``cpf_jax.viz``, synthetic RGB-D
 sequences with ground truth in ``cpf_jax.synthetic`` and gradient tuning of the

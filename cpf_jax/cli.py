@@ -11,6 +11,13 @@ colour first when a calibration is in effect: ``--calib FILE``, or the
 folder's own ``calibration.json`` (``cpf_jax.registration`` format). The RGB-D
 models learn a background from ``--background`` frames of the recording.
 
+``--points`` adds layer 2 (``cpf_jax.cascade``): points on the body (``joints``:
+a synthetic scenario's head, hands and feet; or ``x,y;x,y;...`` pixels of the
+start frame) tracked in depth inside every layer-1 box. The CSV gains
+``<point>_x, <point>_y`` (pixels) and ``<point>_X_mm, _Y_mm, _Z_mm`` (camera
+millimetres) columns, the Rerun log the 2D and 3D points, and with ``joints``
+the summary gives each point's median 2D and 3D error.
+
 Exit codes: 0 success, 2 bad input (path, image, box, option), 130 interrupted.
 """
 
@@ -74,6 +81,35 @@ def parse_layout(text: str) -> tuple[int, int] | None:
     return vals
 
 
+#: Points ``--points joints`` tracks (names of ``SyntheticSequence.joint_names``).
+JOINTS = ("head", "left_hand", "right_hand", "left_foot", "right_foot")
+# mm from the surface under each tracked point to the joint centre behind it
+# (``PointParams.joint_depth_offset``; experiments/depth_points.py).
+JOINT_DEPTH_OFFSET_MM = (80.0, 20.0, 20.0, 40.0, 40.0)
+
+
+def parse_points(text: str, source, start: int) -> tuple[np.ndarray, tuple[str, ...]]:
+    """``([P, 2] points, names)`` of ``--points``: ``joints`` or ``x,y;x,y;...``."""
+    if text == "joints":
+        seq = getattr(source, "sequence", None)
+        names = tuple(getattr(seq, "joint_names", ()))
+        if seq is None or not all(n in names for n in JOINTS):
+            raise UsageError(
+                f"--points joints needs a synthetic scenario; give x,y;x,y;... for "
+                f"{source.describe()}"
+            )
+        idx = [names.index(n) for n in JOINTS]
+        # Joint projections (u, v) in the box convention of the point filter.
+        return np.asarray(seq.joints2d[start, idx], np.float32) + 0.5, JOINTS
+    try:
+        pts = [[float(v) for v in item.split(",")] for item in text.split(";") if item.strip()]
+    except ValueError:
+        pts = []
+    if not pts or any(len(q) != 2 for q in pts):
+        raise UsageError(f"--points expects 'joints' or x,y;x,y;..., got {text!r}")
+    return np.asarray(pts, np.float32), tuple(f"p{k}" for k in range(len(pts)))
+
+
 def check_box(box: np.ndarray, size: tuple[int, int], where: str) -> None:
     """Reject boxes that cannot start a track: non-positive size or no overlap with the frame."""
     w, h = size
@@ -114,7 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(
         prog="cpf-track",
-        description="Track a person's bounding box with the colour particle filter.",
+        description="Track a person's bounding box (and, with --points, points on the body).",
     )
     p.add_argument(
         "path",
@@ -187,6 +223,16 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="--model rgb: weight of the layout term (default 10)",
+    )
+    p.add_argument(
+        "--points",
+        default=None,
+        help="also track points on the body with the depth layer (the cascade): "
+        "'joints' (a synthetic scenario's head, hands and feet) or x,y;x,y;... "
+        "(pixels in the start frame; quote it in a shell)",
+    )
+    p.add_argument(
+        "--point-particles", type=int, default=100, help="particles per body point (--points)"
     )
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -327,6 +373,10 @@ def _run(args: argparse.Namespace) -> int:
         background = jax.jit(median_background)(
             np.stack([f.colour for f in bg_frames]), np.stack([f.depth for f in bg_frames])
         )
+    cascade = None
+    if args.points is not None:
+        cascade = _cascade(args, source, read, start, config, params, calib, background)
+        config, params, filt, points0, point_names = cascade
     init = jax.jit(filt.init)
     step = jax.jit(filt.step)
 
@@ -335,13 +385,25 @@ def _run(args: argparse.Namespace) -> int:
         from cpf_jax.viz import RerunLogger
 
         logger = RerunLogger(args.rrd)
-    writer = ResultsWriter(args.out, extra_columns=("ess", "lost", "ms")) if args.out else None
+    point_columns = ()
+    if cascade is not None:
+        point_columns = tuple(
+            f"{n}_{c}" for n in point_names for c in ("x", "y", "X_mm", "Y_mm", "Z_mm")
+        )
+    writer = (
+        ResultsWriter(args.out, extra_columns=("ess", "lost", "ms", *point_columns))
+        if args.out
+        else None
+    )
 
     key = jax.random.PRNGKey(args.seed)
     n_track = stop - start
     pred = np.zeros((n_frames, 4), np.float32)
     lost = np.zeros(n_frames, bool)
     tracked = np.zeros(n_frames, bool)
+    n_points = 0 if cascade is None else len(point_names)
+    pts2d = np.full((n_frames, n_points, 2), np.nan, np.float32)
+    pts3d = np.full((n_frames, n_points, 3), np.nan, np.float32)
     bar = Progress(n_track, label="tracking", interactive=False if args.no_progress else None)
     n_steps = n_windowed = 0  # colour model: steps whose histograms came from the window
     try:
@@ -352,14 +414,26 @@ def _run(args: argparse.Namespace) -> int:
             key, k = jax.random.split(key)
             t0 = time.perf_counter()
             if state is None:
-                if background is None:
+                if cascade is not None:
+                    state = init(
+                        params, k, frame, jnp.asarray(box), jnp.asarray(points0), background
+                    )
+                    pts2d[i] = points0
+                elif background is None:
                     state = init(params, k, frame, jnp.asarray(box))
                 else:
                     state = init(params, k, frame, jnp.asarray(box), background)
                 est = np.asarray(box, np.float32)
-                ess, is_lost = float(config.n_particles), False
+                ess, is_lost = (
+                    float(config.box.n_particles if cascade else config.n_particles),
+                    False,
+                )
             else:
                 state, info = step(params, k, state, frame)
+                if cascade is not None:
+                    pts2d[i] = np.asarray(info.points.mean)
+                    pts3d[i] = np.asarray(info.points.mean3d)
+                    info = info.box
                 # The RGB-D filters report the box to score (e.g. the visible part).
                 est = np.asarray(getattr(info, "report", info.estimate))
                 ess, is_lost = float(info.ess), bool(info.lost)
@@ -371,9 +445,22 @@ def _run(args: argparse.Namespace) -> int:
                 raise CpfJaxError(f"{source.names[i]}: the filter produced a non-finite box")
             pred[i], lost[i], tracked[i] = est, is_lost, True
             if writer is not None:
-                writer.write(i, est, ess=round(ess, 2), lost=int(is_lost), ms=round(ms, 3))
+                extras = {}
+                for n, name in enumerate(point_names if cascade else ()):
+                    for c, v in zip(("x", "y"), pts2d[i, n], strict=True):
+                        extras[f"{name}_{c}"] = round(float(v), 2)
+                    if np.all(np.isfinite(pts3d[i, n])):
+                        for c, v in zip(("X_mm", "Y_mm", "Z_mm"), pts3d[i, n], strict=True):
+                            extras[f"{name}_{c}"] = round(float(v), 1)
+                writer.write(
+                    i, est, ess=round(ess, 2), lost=int(is_lost), ms=round(ms, 3), **extras
+                )
             if logger is not None:
-                _log_frame(logger, i, frame_np, source, est, state, ess, ms)
+                box_state = state.box if cascade is not None else state
+                _log_frame(logger, i, frame_np, source, est, box_state, ess, ms)
+                if cascade is not None:
+                    logger.log_points2d(i, pts2d[i], labels=list(point_names))
+                    logger.log_points3d(i, pts3d[i], labels=list(point_names))
             bar.update()
         bar.close()  # the final progress line only for a completed run
     finally:
@@ -382,9 +469,11 @@ def _run(args: argparse.Namespace) -> int:
         if logger is not None:
             logger.close()
 
+    n_box = config.box.n_particles if cascade is not None else config.n_particles
     print(
-        f"tracked {n_track} frames of {source.describe()} with N={config.n_particles} "
-        f"(model {args.model}{', depth registered' if calib is not None else ''})"
+        f"tracked {n_track} frames of {source.describe()} with N={n_box} "
+        f"(model {args.model}{', depth registered' if calib is not None else ''}"
+        f"{f', {n_points} body points' if cascade is not None else ''})"
     )
     if n_windowed < n_steps:
         print(
@@ -397,11 +486,77 @@ def _run(args: argparse.Namespace) -> int:
         vis = None if source.visible is None else source.visible[sel]
         summary = summarise(pred[sel], source.gt_boxes[sel], vis, lost[sel])
         print(format_summary({Path(str(args.path)).name or str(args.path): summary}))
+    if cascade is not None and args.points == "joints":
+        print(_point_summary(source, point_names, pts2d, pts3d, tracked, start))
     if args.out:
         print(f"boxes written to {args.out}")
     if args.rrd:
         print(f"Rerun recording written to {args.rrd}")
     return 0
+
+
+def _cascade(args, source, read, start, box_config, box_params, calib, background):
+    """``(config, params, filter, points, names)`` of the cascade (``--points``)."""
+
+    import jax.numpy as jnp
+
+    from cpf_jax.cascade import CascadeConfig, build_cascade, check_points, default_cascade_params
+    from cpf_jax.colour import ColourConfig
+    from cpf_jax.points import PointFilterConfig
+    from cpf_jax.rgbd import RGBDConfig, default_rgbd_params
+
+    if args.point_particles < 1:
+        raise UsageError(f"--point-particles must be >= 1, got {args.point_particles}")
+    if getattr(source, "has_depth", True) is False or not np.any(read(start).depth):
+        raise UsageError(f"--points needs depth: {source.describe()} has none at frame {start}")
+    points, names = parse_points(args.points, source, start)
+    points = check_points(points, (source.size[1], source.size[0]))
+    if isinstance(box_config, ColourConfig):  # the colour layer as the "rgb" variant
+        box_config = RGBDConfig(
+            variant="rgb",
+            n_particles=box_config.n_particles,
+            colour=box_config,
+            window=box_config.window,
+        )
+        box_params = default_rgbd_params(box_config)._replace(colour=box_params)
+    # 3D estimates need the intrinsics of the frames' pixel grid: the colour camera's
+    # after registration, else the source's own (Kinect v2 depth by default).
+    intrinsics = calib.colour if calib is not None else source.intrinsics
+    point_kw = {} if intrinsics is None else {"intrinsics": intrinsics}
+    foreground = background is not None
+    if foreground:  # the union of the sizeable components inside the foreground
+        point_kw.update(seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05)
+    config = CascadeConfig(
+        box=box_config,
+        points=PointFilterConfig(n_particles=args.point_particles, **point_kw),
+        foreground=foreground,
+    )
+    params = default_cascade_params(config)
+    point_params = params.points
+    if args.points == "joints":
+        offset = jnp.asarray(JOINT_DEPTH_OFFSET_MM, jnp.float32)
+        point_params = point_params._replace(joint_depth_offset=offset)
+    params = params._replace(box=box_params, points=point_params)
+    return config, params, build_cascade(config), points, names
+
+
+def _point_summary(source, names, pts2d, pts3d, tracked, start) -> str:
+    """Median 2D / 3D errors of ``--points joints`` over the steps where the target is visible."""
+    seq = source.sequence
+    idx = [list(seq.joint_names).index(n) for n in names]
+    sel = tracked.copy()
+    sel[start] = False  # the initial frame has no 3D estimate
+    if source.visible is not None:
+        sel &= np.asarray(source.visible, bool)
+    lines = ["| point | median 2D error px | median 3D error mm |", "|---|---:|---:|"]
+    for k, name in enumerate(names):
+        e2 = np.linalg.norm(pts2d[sel, k] - (seq.joints2d[sel][:, idx[k]] + 0.5), axis=-1)
+        e3 = np.linalg.norm(pts3d[sel, k] - seq.joints3d[sel][:, idx[k]], axis=-1)
+        e3 = np.where(np.isfinite(e3), e3, np.inf)  # no 3D estimate counts as lost
+        med2 = float(np.median(e2)) if e2.size else float("nan")
+        med3 = float(np.median(e3)) if e3.size else float("nan")
+        lines.append(f"| {name} | {med2:.1f} | {med3:.1f} |")
+    return "\n".join(lines)
 
 
 def _calibration(args: argparse.Namespace, source):
