@@ -184,7 +184,7 @@ def test_config_errors():
 
 
 def test_cli_points_writes_joints_and_errors(tmp_path, capsys):
-    out = tmp_path / "run.csv"
+    out, rrd = tmp_path / "run.csv", tmp_path / "run.rrd"
     code = main(
         [
             "walk_towards",
@@ -202,6 +202,8 @@ def test_cli_points_writes_joints_and_errors(tmp_path, capsys):
             "6",
             "--out",
             str(out),
+            "--rrd",
+            str(rrd),
             "--no-progress",
         ]
     )
@@ -218,6 +220,19 @@ def test_cli_points_writes_joints_and_errors(tmp_path, capsys):
             z = float(r[f"{name}_Z_mm"])
             assert 1000.0 < z < 8000.0  # on the walker, in mm
     assert read_results(out)["boxes"].shape == (6, 4)
+    from rerun.chunk import RrdReader
+
+    paths = {str(ch.entity_path) for ch in RrdReader(str(rrd)).stream()}
+    assert any("body/points3d" in p for p in paths) and any("body/points" in p for p in paths)
+
+
+def test_cli_points_joints_needs_a_synthetic_scenario(tmp_path, capsys):
+    from cpf_jax.synthetic import to_folder
+
+    folder = to_folder(make_sequence("walk_towards", seed=1, n_frames=3), tmp_path / "rec")
+    code = main([str(folder), "--points", "joints", "--model", "rgbd", "--no-progress"])
+    assert code == 2
+    assert "--points joints needs a synthetic scenario" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
