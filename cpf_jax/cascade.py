@@ -3,8 +3,9 @@ inside it, in one jitted step (thesis ch. 5, SPEC C4).
 
 Usage::
 
+    box = RGBDConfig(variant="grid-occlusion", n_particles=300)
     config = CascadeConfig(
-        box=RGBDConfig(variant="grid-occlusion", n_particles=300),
+        box=box.with_window(box_wh, frame_hw),  # without a window: exact but slower
         points=PointFilterConfig(n_particles=100, weighting="combined"),
     )
     filt = build_cascade(config)

@@ -497,7 +497,6 @@ def _run(args: argparse.Namespace) -> int:
 
 def _cascade(args, source, read, start, box_config, box_params, calib, background):
     """``(config, params, filter, points, names)`` of the cascade (``--points``)."""
-
     import jax.numpy as jnp
 
     from cpf_jax.cascade import CascadeConfig, build_cascade, check_points, default_cascade_params
