@@ -7,8 +7,9 @@ layer 2 (``cpf_jax.points``) tracks points on the body in depth, and
 from live in ``cpf_jax.kernels``. Frame
 sources and results files are in ``cpf_jax.io``, metrics in
 ``cpf_jax.metrics``, Rerun logging in ``cpf_jax.viz``, synthetic RGB-D
-sequences with ground truth in ``cpf_jax.synthetic`` and gradient tuning of the
-filters' parameters with optax in ``cpf_jax.tuning``.
+sequences with ground truth in ``cpf_jax.synthetic``, batch runs over devices in
+``cpf_jax.batch`` and gradient tuning of the filters' parameters with optax in
+``cpf_jax.tuning``.
 
 Importing the package changes no global JAX configuration.
 """

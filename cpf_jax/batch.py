@@ -1,0 +1,123 @@
+"""Batch runs spread over devices (SPEC C8): many seeds, sequences or settings at once.
+
+Usage::
+
+    from cpf_jax.batch import batch_mesh, run_sharded
+
+    filt = build_colour_filter(config)
+    one = lambda key, frames, box: track_boxes(filt, params, key, frames, box)
+    boxes = run_sharded(one, keys, frames, box)  # [K, T, 4]; keys [K] spread over devices
+    # many sequences: batch a pytree (key, frames, box) and share nothing
+    boxes = run_sharded(lambda item: one(*item), (keys, frames_batch, boxes0))
+
+``run_sharded(fn, batched, *shared)`` applies ``fn(item, *shared)`` to every item
+along the leading axis of the pytree ``batched``. The items are split into equal
+blocks, one per device of a one-axis mesh (``batch_mesh``, every device by default),
+with ``jax.shard_map``; the ``shared`` arguments are replicated. Within a device the
+items run one after another under ``lax.map`` (``inner="map"``, the default: the
+filters' ``lax.cond`` branches stay real branches and memory stays that of one item)
+or all at once under ``vmap`` (``inner="vmap"``: one batched program, the better
+choice on a GPU when a block fits in memory). A batch that does not divide evenly is
+padded with copies of its last item, and the padding is cut from the result. The
+whole call is one jitted program per ``fn``, shapes and mesh.
+
+On one CPU the mesh has one device. Several CPU devices for testing:
+``XLA_FLAGS=--xla_force_host_platform_device_count=N`` before JAX starts (each
+device then gets a share of the host's cores). On several GPUs or hosts the same
+code runs on ``jax.devices()`` (after ``jax.distributed.initialize()`` for hosts).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
+
+__all__ = ["AXIS", "INNER", "batch_mesh", "run_sharded"]
+
+AXIS = "batch"
+INNER = ("map", "vmap")
+
+
+def batch_mesh(devices: Sequence[Any] | None = None, axis: str = AXIS) -> Mesh:
+    """A one-axis ``Mesh`` named ``axis`` over ``devices`` (default: ``jax.devices()``)."""
+    devices = list(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("batch_mesh needs at least one device")
+    return Mesh(np.asarray(devices, dtype=object), (axis,))
+
+
+def _batch_size(batched: Any) -> int:
+    leaves = jax.tree_util.tree_leaves(batched)
+    if not leaves:
+        raise ValueError("run_sharded: 'batched' has no arrays")
+    sizes = {int(np.shape(x)[0]) if np.ndim(x) else -1 for x in leaves}
+    if -1 in sizes:
+        raise ValueError("run_sharded: every array in 'batched' needs a leading batch axis")
+    if len(sizes) != 1:
+        raise ValueError(
+            f"run_sharded: the arrays in 'batched' differ in batch size: {sorted(sizes)}"
+        )
+    (n,) = sizes
+    if n < 1:
+        raise ValueError("run_sharded: the batch is empty")
+    return n
+
+
+def _pad(batched: Any, n: int, to: int) -> Any:
+    if to == n:
+        return batched
+
+    def pad(x):
+        x = jnp.asarray(x)
+        last = jnp.broadcast_to(x[-1:], (to - n, *x.shape[1:]))
+        return jnp.concatenate([x, last], axis=0)
+
+    return jax.tree_util.tree_map(pad, batched)
+
+
+@functools.cache
+def _program(fn: Callable, mesh: Mesh, axis: str, inner: str, n_shared: int) -> Callable:
+    def block(batched, *shared):
+        if inner == "vmap":
+            return jax.vmap(lambda item: fn(item, *shared))(batched)
+        return jax.lax.map(lambda item: fn(item, *shared), batched)
+
+    spec = PartitionSpec(axis)
+    in_specs = (spec, *([PartitionSpec()] * n_shared))
+    mapped = jax.shard_map(block, mesh=mesh, in_specs=in_specs, out_specs=spec, check_vma=False)
+    return jax.jit(mapped)
+
+
+def run_sharded(
+    fn: Callable,
+    batched: Any,
+    *shared: Any,
+    mesh: Mesh | None = None,
+    inner: str = "map",
+) -> Any:
+    """``fn(item, *shared)`` for every item of ``batched``, spread over ``mesh``'s devices.
+
+    ``batched``: a pytree of arrays with one leading batch axis ``[B, ...]``.
+    ``shared``: arguments every item sees whole (replicated on every device).
+    ``mesh``: a one-axis mesh (``batch_mesh()`` by default). ``inner``: ``"map"`` or
+    ``"vmap"`` (module docstring). Returns ``fn``'s outputs stacked ``[B, ...]``.
+    ``fn`` should be one function object per program (a lambda made anew on each call
+    compiles anew).
+    """
+    if inner not in INNER:
+        raise ValueError(f"inner must be one of {INNER}, got {inner!r}")
+    mesh = batch_mesh() if mesh is None else mesh
+    if len(mesh.axis_names) != 1:
+        raise ValueError(f"run_sharded needs a one-axis mesh, got axes {mesh.axis_names}")
+    (axis,) = mesh.axis_names
+    n = _batch_size(batched)
+    d = mesh.devices.size
+    padded = _pad(batched, n, -(-n // d) * d)
+    out = _program(fn, mesh, axis, inner, len(shared))(padded, *shared)
+    return jax.tree_util.tree_map(lambda x: x[:n], out)
