@@ -81,7 +81,7 @@ def _pad(batched: Any, n: int, to: int) -> Any:
     return jax.tree_util.tree_map(pad, batched)
 
 
-@functools.cache
+@functools.lru_cache(maxsize=64)  # bounded: a notebook may pass a new lambda each call
 def _program(fn: Callable, mesh: Mesh, axis: str, inner: str, n_shared: int) -> Callable:
     def block(batched, *shared):
         if inner == "vmap":
