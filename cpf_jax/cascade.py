@@ -65,7 +65,7 @@ from cpf_jax.points import (
     default_point_params,
 )
 from cpf_jax.rgbd import RGBDConfig, RGBDInfo, RGBDParams, build_rgbd_filter, default_rgbd_params
-from cpf_jax.types import Filter, Frame
+from cpf_jax.types import Filter, Frame, scan_filter
 
 __all__ = [
     "BOX_SOURCES",
@@ -215,15 +215,4 @@ def track_cascade(
     """A whole sequence as one ``lax.scan``: init on ``frames[0]`` with the box and
     points ``[P, 2]``, steps on ``1..T-1``. Returns ``(final_state, infos)`` with
     infos ``[T - 1, ...]``. Works under ``jit`` and ``vmap``."""
-    k_init, k_run = jax.random.split(key)
-    first = jax.tree_util.tree_map(lambda x: x[0], frames)
-    rest = jax.tree_util.tree_map(lambda x: x[1:], frames)
-    state = filt.init(params, k_init, first, box_xywh, points_xy, background)
-    t = jax.tree_util.tree_leaves(rest)[0].shape[0]
-    keys = jax.random.split(k_run, t)
-
-    def body(s, xs):
-        k, f = xs
-        return filt.step(params, k, s, f)
-
-    return jax.lax.scan(body, state, (keys, rest))
+    return scan_filter(filt, params, key, frames, box_xywh, points_xy, background)

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from cpf_jax.errors import CpfJaxError
+from cpf_jax.points import BODY_POINT_DEPTH_OFFSET_MM, BODY_POINTS
 
 __all__ = ["main", "parse_box"]
 
@@ -81,11 +82,9 @@ def parse_layout(text: str) -> tuple[int, int] | None:
     return vals
 
 
-#: Points ``--points joints`` tracks (names of ``SyntheticSequence.joint_names``).
-JOINTS = ("head", "left_hand", "right_hand", "left_foot", "right_foot")
-# mm from the surface under each tracked point to the joint centre behind it
-# (``PointParams.joint_depth_offset``; experiments/depth_points.py).
-JOINT_DEPTH_OFFSET_MM = (80.0, 20.0, 20.0, 40.0, 40.0)
+#: Points ``--points joints`` tracks, and their joint depth offsets (cpf_jax.points).
+JOINTS = BODY_POINTS
+JOINT_DEPTH_OFFSET_MM = BODY_POINT_DEPTH_OFFSET_MM
 
 
 def parse_points(text: str, source, start: int) -> tuple[np.ndarray, tuple[str, ...]]:

@@ -185,7 +185,7 @@ from cpf_jax.kernels.histogram import (
     suggest_window,
     uses_window,
 )
-from cpf_jax.types import Filter, Frame
+from cpf_jax.types import Filter, Frame, scan_filter
 
 __all__ = [
     "ColourConfig",
@@ -931,18 +931,7 @@ def track(filt: Filter, params, key: Array, frames: Frame, box_xywh: Array):
     axis ``T - 1``; ``estimates(box, infos)`` gives the ``[T, 4]`` track.
     Works under ``jit`` and ``vmap`` (over keys, params or sequences).
     """
-    k_init, k_run = jax.random.split(key)
-    first = jax.tree_util.tree_map(lambda x: x[0], frames)
-    rest = jax.tree_util.tree_map(lambda x: x[1:], frames)
-    state = filt.init(params, k_init, first, box_xywh)
-    t = jax.tree_util.tree_leaves(rest)[0].shape[0]
-    keys = jax.random.split(k_run, t)
-
-    def body(s, xs):
-        k, f = xs
-        return filt.step(params, k, s, f)
-
-    return jax.lax.scan(body, state, (keys, rest))
+    return scan_filter(filt, params, key, frames, box_xywh)
 
 
 def track_boxes(filt: Filter, params, key: Array, frames: Frame, box_xywh: Array) -> Array:

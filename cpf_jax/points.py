@@ -81,10 +81,12 @@ from cpf_jax.kernels import depth as dk
 from cpf_jax.kernels import graph as gk
 from cpf_jax.kernels import resample as rs
 from cpf_jax.kernels import spin as sk
-from cpf_jax.types import KINECT_V2_DEPTH, Filter, Intrinsics
+from cpf_jax.types import KINECT_V2_DEPTH, Filter, Intrinsics, scan_filter
 
 __all__ = [
     "WEIGHTINGS",
+    "BODY_POINTS",
+    "BODY_POINT_DEPTH_OFFSET_MM",
     "PointFilterConfig",
     "PointParams",
     "PARAM_CONSTRAINTS",
@@ -99,6 +101,12 @@ __all__ = [
 ]
 
 WEIGHTINGS = ("spin", "geodesic", "combined")
+#: The body points tracked by default (names of ``SyntheticSequence.joint_names``).
+BODY_POINTS = ("head", "left_hand", "right_hand", "left_foot", "right_foot")
+#: mm from the surface under each of ``BODY_POINTS`` to the joint centre behind it
+#: (``PointParams.joint_depth_offset``): half a hand's thickness for hands; rough
+#: values for the head and feet.
+BODY_POINT_DEPTH_OFFSET_MM = (80.0, 20.0, 20.0, 40.0, 40.0)
 REFERENCES = ("head", "centroid")
 
 
@@ -573,15 +581,4 @@ def track_points(filt: Filter, params: PointParams, key: Array, inputs: PointInp
     Initialised on frame 0 at ``points [P, 2]``, stepped on frames ``1..T-1``.
     Returns ``(final_state, infos)`` with infos ``[T - 1, ...]``.
     """
-    k_init, k_run = jax.random.split(key)
-    first = jax.tree_util.tree_map(lambda x: x[0], inputs)
-    rest = jax.tree_util.tree_map(lambda x: x[1:], inputs)
-    state = filt.init(params, k_init, first, points)
-    t = jax.tree_util.tree_leaves(rest)[0].shape[0]
-    keys = jax.random.split(k_run, t)
-
-    def body(s, xs):
-        k, f = xs
-        return filt.step(params, k, s, f)
-
-    return jax.lax.scan(body, state, (keys, rest))
+    return scan_filter(filt, params, key, inputs, points)

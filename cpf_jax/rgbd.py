@@ -229,7 +229,7 @@ from cpf_jax.kernels.histogram import (
     suggest_window,
     uses_window,
 )
-from cpf_jax.types import Filter, Frame
+from cpf_jax.types import Filter, Frame, scan_filter
 
 __all__ = [
     "VARIANTS",
@@ -1855,18 +1855,7 @@ def track(filt: Filter, params, key: Array, frames: Frame, box_xywh: Array, back
     ``1..T-1``. Returns ``(final_state, infos)`` with infos of length ``T - 1``.
     Works under ``jit`` and ``vmap``.
     """
-    k_init, k_run = jax.random.split(key)
-    first = jax.tree_util.tree_map(lambda x: x[0], frames)
-    rest = jax.tree_util.tree_map(lambda x: x[1:], frames)
-    state = filt.init(params, k_init, first, box_xywh, background)
-    t = jax.tree_util.tree_leaves(rest)[0].shape[0]
-    keys = jax.random.split(k_run, t)
-
-    def body(s, xs):
-        kk, f = xs
-        return filt.step(params, kk, s, f)
-
-    return jax.lax.scan(body, state, (keys, rest))
+    return scan_filter(filt, params, key, frames, box_xywh, background)
 
 
 def track_boxes(

@@ -5,9 +5,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import jax
 from jax import Array
 
-__all__ = ["Frame", "Intrinsics", "Filter", "KINECT_V2_DEPTH"]
+__all__ = ["Frame", "Intrinsics", "Filter", "KINECT_V2_DEPTH", "scan_filter"]
 
 
 class Frame(NamedTuple):
@@ -47,3 +48,23 @@ class Filter(NamedTuple):
 
     init: Callable[..., Any]
     step: Callable[..., Any]
+
+
+def scan_filter(filt: Filter, params: Any, key: Array, inputs: Any, *init_args: Any):
+    """Run ``filt`` over ``inputs`` (a pytree with a leading time axis ``[T, ...]``) as one
+    ``lax.scan``: ``filt.init(params, k, inputs[0], *init_args)``, then ``filt.step`` on
+    ``inputs[1:]``, one key each (``key`` split into an init key and a run key).
+    Returns ``(final_state, infos)`` with infos ``[T - 1, ...]``; works under ``jit``
+    and ``vmap``. Every filter's ``track`` function is this with its own init arguments.
+    """
+    k_init, k_run = jax.random.split(key)
+    first = jax.tree_util.tree_map(lambda x: x[0], inputs)
+    rest = jax.tree_util.tree_map(lambda x: x[1:], inputs)
+    state = filt.init(params, k_init, first, *init_args)
+    keys = jax.random.split(k_run, jax.tree_util.tree_leaves(rest)[0].shape[0])
+
+    def body(s, xs):
+        k, x = xs
+        return filt.step(params, k, s, x)
+
+    return jax.lax.scan(body, state, (keys, rest))

@@ -53,6 +53,8 @@ import numpy as np
 
 from cpf_jax.kernels import depth as dk
 from cpf_jax.points import (
+    BODY_POINT_DEPTH_OFFSET_MM,
+    BODY_POINTS,
     PointFilterConfig,
     PointInputs,
     body_model,
@@ -64,11 +66,11 @@ from cpf_jax.synthetic import make_sequence
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ("spin", "geodesic", "combined")
-TRACKED = ("head", "left_hand", "right_hand", "left_foot", "right_foot")
+TRACKED = BODY_POINTS
 HANDS = (1, 2)
 # mm from the visible surface to the joint centre along the ray (half a hand's thickness;
 # the head and feet are not scored and get rough values)
-JOINT_OFFSET = (80.0, 20.0, 20.0, 40.0, 40.0)
+JOINT_OFFSET = BODY_POINT_DEPTH_OFFSET_MM
 # name: (generator overrides, use a background-subtraction foreground, filter settings)
 CASES = {
     "walk_towards": (dict(speed_mps=0.4), False, {}),
