@@ -119,8 +119,7 @@ def default_cascade_params(config: CascadeConfig | None = None) -> CascadeParams
 
 class CascadeState(NamedTuple):
     box: Any  # layer 1's state (RGBDState; ColourState for the "rgb" variant)
-    points: PointState
-    last_box: Array  # [4] xywh, the last box layer 1 did not lose
+    points: PointState  # its ``box`` is the last box layer 2 worked in
     background: Background | None
 
 
@@ -188,7 +187,7 @@ def build_cascade(config: CascadeConfig) -> Filter:
         s1 = layer1.init(params.box, k1, frame, box, background)
         pts = jnp.asarray(points_xy, jnp.float32)
         s2 = layer2.init(params.points, k2, inputs(frame, box, background), pts)
-        return CascadeState(s1, s2, box, background)
+        return CascadeState(s1, s2, background)
 
     def step(
         params: CascadeParams, key: Array, state: CascadeState, frame: Frame
@@ -196,9 +195,9 @@ def build_cascade(config: CascadeConfig) -> Filter:
         k1, k2 = jax.random.split(key)
         s1, i1 = layer1.step(params.box, k1, state.box, frame)
         new_box = i1.estimate if config.box_source == "estimate" else i1.report
-        box = jnp.where(i1.lost, state.last_box, new_box)
+        box = jnp.where(i1.lost, state.points.box, new_box)
         s2, i2 = layer2.step(params.points, k2, state.points, inputs(frame, box, state.background))
-        return CascadeState(s1, s2, box, state.background), CascadeInfo(i1, i2, box)
+        return CascadeState(s1, s2, state.background), CascadeInfo(i1, i2, box)
 
     return Filter(init=init, step=step)
 

@@ -128,14 +128,7 @@ def main() -> None:
         ]
         for source in SOURCES:
             if source == "gt":
-                fg = None
-                if use_fg:
-                    bg = dp.temporal_background(seq.depth)
-                    fg = np.asarray(
-                        jax.vmap(dp.dk.foreground_mask, in_axes=(0, None))(
-                            jnp.asarray(seq.depth), jnp.asarray(bg)
-                        )
-                    )
+                fg = dp.temporal_foreground(seq) if use_fg else None
                 runs, idx = dp.run(seq, "combined", args.keys, fg, config_kw)
                 box_sr = 100.0
             else:

@@ -94,6 +94,13 @@ def temporal_background(depth: np.ndarray) -> np.ndarray:
     return np.nan_to_num(np.nanmedian(d, axis=0), nan=0.0)
 
 
+def temporal_foreground(seq) -> np.ndarray:
+    """``[T, H, W] bool`` depth foreground of every frame against ``temporal_background``."""
+    bg = temporal_background(seq.depth)
+    mask = jax.vmap(dk.foreground_mask, in_axes=(0, None))(jnp.asarray(seq.depth), jnp.asarray(bg))
+    return np.asarray(mask)
+
+
 def run(seq, method: str, keys: int, foreground=None, config_kw: dict | None = None):
     cfg = PointFilterConfig(weighting=method, **(config_kw or {}))
     filt = build_point_filter(cfg)
@@ -250,14 +257,7 @@ def main() -> None:
     for case in args.cases.split(","):
         kw, use_fg, config_kw = CASES[case]
         seq = make_sequence(case, seed=0, n_frames=args.frames, fps=30.0, **kw)
-        fg = None
-        if use_fg:
-            bg = temporal_background(seq.depth)
-            fg = np.asarray(
-                jax.vmap(dk.foreground_mask, in_axes=(0, None))(
-                    jnp.asarray(seq.depth), jnp.asarray(bg)
-                )
-            )
+        fg = temporal_foreground(seq) if use_fg else None
         occl = self_occlusion_frames(seq)[1:]
         vis = seq.meta["joint_visible"][1:][
             :, [list(seq.joint_names).index(h) for h in ("left_hand", "right_hand")]
