@@ -18,7 +18,14 @@ start frame) tracked in depth inside every layer-1 box. The CSV gains
 millimetres) columns, the Rerun log the 2D and 3D points, and with ``joints``
 the summary gives each point's median 2D and 3D error.
 
-Exit codes: 0 success, 2 bad input (path, image, box, option), 130 interrupted.
+Live sources (``realsense[:serial]``, ``kinect2[:serial]``, a RealSense ``.bag``/``.db3``) are
+read once, in order: ``--init`` is required, ``--background N`` takes the stream's first N
+frames and tracking starts after them; the run ends with the stream, ``--max-frames`` or
+Ctrl-C, and the camera is stopped however it ends. The Rerun log goes to ``--rrd FILE``,
+a new viewer (``--spawn``) or a running one (``--connect URL``, checked before tracking).
+
+Exit codes: 0 success, 2 bad input (path, image, box, option, camera, viewer), 130
+interrupted.
 """
 
 from __future__ import annotations
@@ -154,13 +161,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "path",
         help="synthetic scenario name, OTB folder (img/ + groundtruth_rect.txt), "
-        "RGB-D folder (rgb/, depth/, groundtruth_rect.txt), .npz or video file",
+        "RGB-D folder (rgb/, depth/, groundtruth_rect.txt), .npz or video file, "
+        "RealSense .bag/.db3, or a live camera: realsense[:serial] or kinect2[:serial] "
+        "(live: --init is required; --background N takes the stream's first N frames)",
     )
     p.add_argument("--init", help="initial box x,y,w,h (0-based top-left pixels)")
     p.add_argument("--particles", "-n", type=int, default=200, help="number of particles")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed")
     p.add_argument("--out", help="write frame,x,y,w,h rows (CSV) as the run goes")
     p.add_argument("--rrd", help="write a Rerun recording to this .rrd file")
+    p.add_argument(
+        "--spawn",
+        action="store_true",
+        help="start a Rerun viewer and stream the log to it (needs a display)",
+    )
+    p.add_argument(
+        "--connect",
+        metavar="URL",
+        help="stream the Rerun log to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy",
+    )
     p.add_argument(
         "--dynamics",
         choices=MODELS,
@@ -180,14 +199,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--background",
         default="25",
         help="background frames for the RGB-D models: N (evenly spaced over the "
-        "recording, default 25), A:B (frames A..B-1, 0-based) or 'empty' (a synthetic "
-        "scenario's empty room)",
+        "recording, default 25; a live stream's first N), A:B (frames A..B-1, 0-based) or "
+        "'empty' (a synthetic scenario's empty room)",
     )
     p.add_argument(
         "--start",
         type=int,
         default=None,
-        help="first frame to track (0-based; default: the first frame with ground truth)",
+        help="first frame to track (0-based; default: the first frame with ground truth; "
+        "live: the frame after the background frames)",
     )
     p.add_argument(
         "--no-hierarchical", action="store_true", help="plain sampling instead of motion-guided"
@@ -269,44 +289,53 @@ def _run(args: argparse.Namespace) -> int:
     if args.sigma is not None and not args.sigma > 0:
         raise UsageError(f"--sigma must be > 0, got {args.sigma}")
 
+    from cpf_jax.io import open_source
+
+    source = open_source(args.path)
+    with source:  # a camera is stopped, a file closed, however the run ends
+        return _track(args, source)
+
+
+def _track(args: argparse.Namespace, source) -> int:
     import jax
     import jax.numpy as jnp
 
     from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params
-    from cpf_jax.io import ResultsWriter, open_source
+    from cpf_jax.io import ResultsWriter
+    from cpf_jax.io.base import LiveSource
     from cpf_jax.metrics import format_summary, summarise
     from cpf_jax.progress import Progress
     from cpf_jax.types import Frame
 
-    source = open_source(args.path)
-    if not hasattr(source, "__len__"):
-        raise UsageError(f"{args.path}: live sources are not supported by cpf-track yet")
-    n_frames = len(source)
+    live = isinstance(source, LiveSource)
     calib = _calibration(args, source)
-    read = source.read if calib is None else _registered_reader(source, calib)
-    if args.start is not None and not 0 <= args.start < n_frames:
-        raise UsageError(f"--start {args.start} is outside 0..{n_frames - 1}")
-    start = source.first_visible if args.init is None else 0
-    if args.start is not None:
-        start = args.start
-    if args.init is not None:
-        box = parse_box(args.init)
-    elif args.start is not None:
-        box = None
-        if source.gt_boxes is not None and (source.visible is None or source.visible[start]):
-            box = np.asarray(source.gt_boxes[start], np.float32)
-        if box is None:
-            raise UsageError(
-                f"{source.describe()}: no ground-truth box at frame {start}; give --init x,y,w,h"
-            )
+    register = _registrar(calib)
+    if live:
+        n_frames = None
+        start, box, bg_frames, first_frame, frames = _open_live(args, source, register)
     else:
-        box = source.init_box
-        if box is None or start is None:
-            raise UsageError(
-                f"{source.describe()}: no ground truth to start from; give --init x,y,w,h"
-            )
+        n_frames = len(source)
+
+        def read(i: int) -> Frame:
+            return register(source.read(i), source.names[i])
+
+        start, box = _start_and_box(args, source, n_frames)
+        bg_frames = None
+        if args.model != "rgb":
+            if args.background == "empty":
+                empty = source.empty_background()
+                if empty is None:
+                    raise UsageError(
+                        f"--background empty: {source.describe()} has no empty-scene frame "
+                        "(only synthetic scenarios do); give N or A:B"
+                    )
+                bg_frames = [empty]
+            else:
+                bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
+        first_frame = read(start)
+        stop = n_frames if args.max_frames is None else min(n_frames, start + args.max_frames)
+        frames = ((i, first_frame if i == start else read(i)) for i in range(start, stop))
     check_box(box, source.size, source.describe())
-    stop = n_frames if args.max_frames is None else min(n_frames, start + args.max_frames)
 
     config_kw = {}
     if args.bins is not None:
@@ -359,36 +388,25 @@ def _run(args: argparse.Namespace) -> int:
         if args.sigma is not None:
             params = params._replace(sigma_rgb=jnp.float32(args.sigma))
         filt = build_rgbd_filter(config)
-        if args.background == "empty":
-            empty = source.empty_background()
-            if empty is None:
-                raise UsageError(
-                    f"--background empty: {source.describe()} has no empty-scene frame "
-                    "(only synthetic scenarios do); give N or A:B"
-                )
-            bg_frames = [empty]
-        else:
-            bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
         background = jax.jit(median_background)(
             np.stack([f.colour for f in bg_frames]), np.stack([f.depth for f in bg_frames])
         )
     cascade = None
+    point_names: tuple[str, ...] = ()
     if args.points is not None:
-        cascade = _cascade(args, source, read, start, config, params, calib, background)
+        cascade = _cascade(args, source, first_frame, start, config, params, calib, background)
         config, params, filt, points0, point_names = cascade
     init = jax.jit(filt.init)
     step = jax.jit(filt.step)
 
     logger = None
-    if args.rrd:
+    if args.rrd or args.spawn or args.connect:
         from cpf_jax.viz import RerunLogger
 
-        logger = RerunLogger(args.rrd)
-    point_columns = ()
-    if cascade is not None:
-        point_columns = tuple(
-            f"{n}_{c}" for n in point_names for c in ("x", "y", "X_mm", "Y_mm", "Z_mm")
-        )
+        logger = RerunLogger(args.rrd, spawn=args.spawn, connect=args.connect)
+    point_columns = tuple(
+        f"{n}_{c}" for n in point_names for c in ("x", "y", "X_mm", "Y_mm", "Z_mm")
+    )
     writer = (
         ResultsWriter(args.out, extra_columns=("ess", "lost", "ms", *point_columns))
         if args.out
@@ -396,28 +414,30 @@ def _run(args: argparse.Namespace) -> int:
     )
 
     key = jax.random.PRNGKey(args.seed)
-    n_track = stop - start
-    pred = np.zeros((n_frames, 4), np.float32)
-    lost = np.zeros(n_frames, bool)
-    tracked = np.zeros(n_frames, bool)
-    n_points = 0 if cascade is None else len(point_names)
-    pts2d = np.full((n_frames, n_points, 2), np.nan, np.float32)
-    pts3d = np.full((n_frames, n_points, 3), np.nan, np.float32)
+    n_track = None if live else stop - start
+    # One entry per tracked frame, in order: its index, box, lost flag, body points.
+    done: list[int] = []
+    pred: list[np.ndarray] = []
+    lost: list[bool] = []
+    pts2d: list[np.ndarray] = []
+    pts3d: list[np.ndarray] = []
+    n_points = len(point_names)
     bar = Progress(n_track, label="tracking", interactive=False if args.no_progress else None)
     n_steps = n_windowed = 0  # colour model: steps whose histograms came from the window
     try:
         state = None
-        for i in range(start, stop):
-            frame_np = read(i)
+        for i, frame_np in frames:
             frame = Frame(jnp.asarray(frame_np.colour), jnp.asarray(frame_np.depth))
             key, k = jax.random.split(key)
             t0 = time.perf_counter()
+            p2 = np.full((n_points, 2), np.nan, np.float32)
+            p3 = np.full((n_points, 3), np.nan, np.float32)
             if state is None:
                 if cascade is not None:
                     state = init(
                         params, k, frame, jnp.asarray(box), jnp.asarray(points0), background
                     )
-                    pts2d[i] = points0
+                    p2 = np.asarray(points0, np.float32)
                 elif background is None:
                     state = init(params, k, frame, jnp.asarray(box))
                 else:
@@ -430,8 +450,8 @@ def _run(args: argparse.Namespace) -> int:
             else:
                 state, info = step(params, k, state, frame)
                 if cascade is not None:
-                    pts2d[i] = np.asarray(info.points.mean)
-                    pts3d[i] = np.asarray(info.points.mean3d)
+                    p2 = np.asarray(info.points.mean)
+                    p3 = np.asarray(info.points.mean3d)
                     info = info.box
                 # The RGB-D filters report the box to score (e.g. the visible part).
                 est = np.asarray(getattr(info, "report", info.estimate))
@@ -441,15 +461,19 @@ def _run(args: argparse.Namespace) -> int:
                     n_windowed += bool(info.windowed)
             ms = (time.perf_counter() - t0) * 1000.0
             if not np.all(np.isfinite(est)):  # never write a NaN box
-                raise CpfJaxError(f"{source.names[i]}: the filter produced a non-finite box")
-            pred[i], lost[i], tracked[i] = est, is_lost, True
+                raise CpfJaxError(f"{_frame_name(source, i)}: the filter produced a non-finite box")
+            done.append(i)
+            pred.append(est)
+            lost.append(is_lost)
+            pts2d.append(p2)
+            pts3d.append(p3)
             if writer is not None:
                 extras = {}
-                for n, name in enumerate(point_names if cascade else ()):
-                    for c, v in zip(("x", "y"), pts2d[i, n], strict=True):
+                for n, name in enumerate(point_names):
+                    for c, v in zip(("x", "y"), p2[n], strict=True):
                         extras[f"{name}_{c}"] = round(float(v), 2)
-                    if np.all(np.isfinite(pts3d[i, n])):
-                        for c, v in zip(("X_mm", "Y_mm", "Z_mm"), pts3d[i, n], strict=True):
+                    if np.all(np.isfinite(p3[n])):
+                        for c, v in zip(("X_mm", "Y_mm", "Z_mm"), p3[n], strict=True):
                             extras[f"{name}_{c}"] = round(float(v), 1)
                 writer.write(
                     i, est, ess=round(ess, 2), lost=int(is_lost), ms=round(ms, 3), **extras
@@ -458,8 +482,8 @@ def _run(args: argparse.Namespace) -> int:
                 box_state = state.box if cascade is not None else state
                 _log_frame(logger, i, frame_np, source, est, box_state, ess, ms)
                 if cascade is not None:
-                    logger.log_points2d(i, pts2d[i], labels=list(point_names))
-                    logger.log_points3d(i, pts3d[i], labels=list(point_names))
+                    logger.log_points2d(i, p2, labels=list(point_names))
+                    logger.log_points3d(i, p3, labels=list(point_names))
             bar.update()
         bar.close()  # the final progress line only for a completed run
     finally:
@@ -470,7 +494,7 @@ def _run(args: argparse.Namespace) -> int:
 
     n_box = config.box.n_particles if cascade is not None else config.n_particles
     print(
-        f"tracked {n_track} frames of {source.describe()} with N={n_box} "
+        f"tracked {len(done)} frames of {source.describe()} with N={n_box} "
         f"(model {args.model}{', depth registered' if calib is not None else ''}"
         f"{f', {n_points} body points' if cascade is not None else ''})"
     )
@@ -480,13 +504,13 @@ def _run(args: argparse.Namespace) -> int:
             "frame (exact, slower): particle boxes left the histogram window sized for the "
             "initial box (ColourInfo.windowed)"
         )
-    if source.gt_boxes is not None:
-        sel = tracked
-        vis = None if source.visible is None else source.visible[sel]
-        summary = summarise(pred[sel], source.gt_boxes[sel], vis, lost[sel])
+    idx = np.asarray(done, int)
+    if source.gt_boxes is not None and idx.size:
+        vis = None if source.visible is None else np.asarray(source.visible)[idx]
+        summary = summarise(np.stack(pred), source.gt_boxes[idx], vis, np.asarray(lost))
         print(format_summary({Path(str(args.path)).name or str(args.path): summary}))
-    if cascade is not None and args.points == "joints":
-        print(_point_summary(source, point_names, pts2d, pts3d, tracked, start))
+    if cascade is not None and args.points == "joints" and idx.size:
+        print(_point_summary(source, point_names, np.stack(pts2d), np.stack(pts3d), idx))
     if args.out:
         print(f"boxes written to {args.out}")
     if args.rrd:
@@ -494,7 +518,101 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cascade(args, source, read, start, box_config, box_params, calib, background):
+def _start_and_box(args: argparse.Namespace, source, n_frames: int) -> tuple[int, np.ndarray]:
+    """The first frame to track and its box, for a recording (finite source)."""
+    if args.start is not None and not 0 <= args.start < n_frames:
+        raise UsageError(f"--start {args.start} is outside 0..{n_frames - 1}")
+    start = source.first_visible if args.init is None else 0
+    if args.start is not None:
+        start = args.start
+    if args.init is not None:
+        return start, parse_box(args.init)
+    if args.start is not None:
+        if source.gt_boxes is not None and (source.visible is None or source.visible[start]):
+            return start, np.asarray(source.gt_boxes[start], np.float32)
+        raise UsageError(
+            f"{source.describe()}: no ground-truth box at frame {start}; give --init x,y,w,h"
+        )
+    box = source.init_box
+    if box is None or start is None:
+        raise UsageError(f"{source.describe()}: no ground truth to start from; give --init x,y,w,h")
+    return start, box
+
+
+def _open_live(args: argparse.Namespace, source, register):
+    """``(start, box, background frames, first frame, frames)`` of a live stream.
+
+    A camera (or a RealSense recording) is read once, in order: the background frames
+    (``--background N``: the first N frames, or ``A:B``; the scene should be empty
+    then) come before tracking, which starts at ``--start`` (default: the frame after
+    the background, 0 for ``--model rgb``). ``frames`` yields ``(index, frame)`` from
+    there until the stream ends, ``--max-frames`` or Ctrl-C.
+    """
+    where = source.describe()
+    if args.init is None:
+        raise UsageError(f"{where}: a live source has no ground truth; give --init x,y,w,h")
+    box = parse_box(args.init)
+    bg = (0, 0)
+    if args.model != "rgb":
+        bg = parse_live_background(args.background)
+    start = bg[1] if args.start is None else args.start
+    if start < bg[1]:
+        raise UsageError(
+            f"--start {start}: a live stream cannot go back; the background frames "
+            f"{bg[0]}..{bg[1] - 1} come first"
+        )
+    stream = iter(source)
+    bg_frames = []
+    first = None
+    for i in range(start + 1):
+        try:
+            frame = register(next(stream), f"{where} frame {i}")
+        except StopIteration:
+            raise UsageError(
+                f"{where}: the stream ended after {i} frames, before frame {start}"
+            ) from None
+        if bg[0] <= i < bg[1]:
+            bg_frames.append(frame)
+        first = frame
+    limit = args.max_frames
+
+    def frames():
+        yield start, first
+        i = start + 1
+        while limit is None or i < start + limit:
+            try:
+                raw = next(stream)
+            except StopIteration:
+                return
+            yield i, register(raw, f"{where} frame {i}")
+            i += 1
+
+    return start, box, bg_frames or None, first, frames()
+
+
+def parse_live_background(text: str) -> tuple[int, int]:
+    """``--background`` of a live stream: ``"N"`` (frames 0..N-1) or ``"A:B"`` -> ``(A, B)``."""
+    try:
+        if ":" in text:
+            a, b = (int(v) for v in text.split(":"))
+        else:
+            a, b = 0, int(text)
+    except ValueError:
+        a = b = 0
+    if not 0 <= a < b:
+        raise UsageError(
+            f"--background for a live stream expects N >= 1 (its first N frames) or A:B with "
+            f"0 <= A < B, got {text!r}"
+        )
+    return a, b
+
+
+def _frame_name(source, i: int) -> str:
+    names = getattr(source, "names", None)
+    return names[i] if names is not None else f"{source.describe()} frame {i}"
+
+
+def _cascade(args, source, first_frame, start, box_config, box_params, calib, background):
     """``(config, params, filter, points, names)`` of the cascade (``--points``)."""
     import jax.numpy as jnp
 
@@ -505,7 +623,7 @@ def _cascade(args, source, read, start, box_config, box_params, calib, backgroun
 
     if args.point_particles < 1:
         raise UsageError(f"--point-particles must be >= 1, got {args.point_particles}")
-    if getattr(source, "has_depth", True) is False or not np.any(read(start).depth):
+    if getattr(source, "has_depth", True) is False or not np.any(first_frame.depth):
         raise UsageError(f"--points needs depth: {source.describe()} has none at frame {start}")
     points, names = parse_points(args.points, source, start)
     points = check_points(points, (source.size[1], source.size[0]))
@@ -538,18 +656,21 @@ def _cascade(args, source, read, start, box_config, box_params, calib, backgroun
     return config, params, build_cascade(config), points, names
 
 
-def _point_summary(source, names, pts2d, pts3d, tracked, start) -> str:
-    """Median 2D / 3D errors of ``--points joints`` over the steps where the target is visible."""
+def _point_summary(source, names, pts2d, pts3d, done) -> str:
+    """Median 2D / 3D errors of ``--points joints`` over the tracked frames ``done`` (in
+    order; ``pts2d [T, P, 2]``, ``pts3d [T, P, 3]`` of those frames) where the target is
+    visible."""
     seq = source.sequence
     idx = [list(seq.joint_names).index(n) for n in names]
-    sel = tracked.copy()
-    sel[start] = False  # the initial frame has no 3D estimate
+    sel = np.ones(len(done), bool)
+    sel[0] = False  # the initial frame has no 3D estimate
     if source.visible is not None:
-        sel &= np.asarray(source.visible, bool)
+        sel &= np.asarray(source.visible, bool)[done]
+    frames = done[sel]
     lines = ["| point | median 2D error px | median 3D error mm |", "|---|---:|---:|"]
     for k, name in enumerate(names):
-        e2 = np.linalg.norm(pts2d[sel, k] - (seq.joints2d[sel][:, idx[k]] + 0.5), axis=-1)
-        e3 = np.linalg.norm(pts3d[sel, k] - seq.joints3d[sel][:, idx[k]], axis=-1)
+        e2 = np.linalg.norm(pts2d[sel, k] - (seq.joints2d[frames][:, idx[k]] + 0.5), axis=-1)
+        e3 = np.linalg.norm(pts3d[sel, k] - seq.joints3d[frames][:, idx[k]], axis=-1)
         e3 = np.where(np.isfinite(e3), e3, np.inf)  # no 3D estimate counts as lost
         med2 = float(np.median(e2)) if e2.size else float("nan")
         med3 = float(np.median(e3)) if e3.size else float("nan")
@@ -578,30 +699,32 @@ def _calibration(args: argparse.Namespace, source):
         raise
 
 
-def _registered_reader(source, calib):
-    """``read(i)`` returning frames with depth registered to colour (one jitted call)."""
+def _registrar(calib):
+    """``register(frame, name) -> Frame``: depth registered to colour by ``calib`` (one
+    jitted call per frame; the frame unchanged when there is no calibration)."""
+    if calib is None:
+        return lambda frame, name: frame
     import jax
 
     from cpf_jax.registration import register_depth
     from cpf_jax.types import Frame
 
-    register = jax.jit(register_depth, static_argnums=(1,))
+    register_jit = jax.jit(register_depth, static_argnums=(1,))
 
-    def read(i: int) -> Frame:
-        f = source.read(i)
+    def register(f: Frame, name: str) -> Frame:
         if f.depth.shape[::-1] != tuple(calib.depth_size):
             raise UsageError(
-                f"{source.names[i]}: depth is {f.depth.shape[1]}x{f.depth.shape[0]} but the "
+                f"{name}: depth is {f.depth.shape[1]}x{f.depth.shape[0]} but the "
                 f"calibration expects {calib.depth_size[0]}x{calib.depth_size[1]}"
             )
         if f.colour.shape[1::-1] != tuple(calib.colour_size):
             raise UsageError(
-                f"{source.names[i]}: colour is {f.colour.shape[1]}x{f.colour.shape[0]} but the "
+                f"{name}: colour is {f.colour.shape[1]}x{f.colour.shape[0]} but the "
                 f"calibration expects {calib.colour_size[0]}x{calib.colour_size[1]}"
             )
-        return Frame(f.colour, np.asarray(register(f.depth, calib)))
+        return Frame(f.colour, np.asarray(register_jit(f.depth, calib)))
 
-    return read
+    return register
 
 
 def _log_frame(logger, i, frame_np, source, est, state, ess, ms) -> None:

@@ -7,7 +7,7 @@ Messages name the file, frame or device and say what is wrong with it.
 
 from __future__ import annotations
 
-__all__ = ["CpfJaxError", "SourceError", "CameraUnavailable"]
+__all__ = ["CpfJaxError", "SourceError", "CameraUnavailable", "ViewerUnavailable"]
 
 
 class CpfJaxError(Exception):
@@ -20,3 +20,7 @@ class SourceError(CpfJaxError):
 
 class CameraUnavailable(SourceError):
     """A live camera cannot be used: its library is not installed or no device answers."""
+
+
+class ViewerUnavailable(CpfJaxError):
+    """A Rerun viewer to stream to cannot be reached (``RerunLogger(connect=...)``)."""

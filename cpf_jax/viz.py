@@ -24,13 +24,16 @@ Nothing numeric happens here: arrays in, Rerun calls out.
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import numpy as np
 import rerun as rr
 
+from cpf_jax.errors import ViewerUnavailable
 from cpf_jax.types import Frame, Intrinsics
 
 __all__ = ["RerunLogger", "weight_colours", "IMAGE_SPACE"]
@@ -95,10 +98,13 @@ class RerunLogger:
         if rrd is None and not spawn and connect is None:
             raise ValueError("RerunLogger needs an .rrd path, spawn=True or a connect URL")
         self.rrd = None if rrd is None else Path(rrd)
+        self.viewer = connect if connect is not None else ("spawned viewer" if spawn else None)
+        if connect is not None:
+            check_viewer(connect)
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
         self.rec.set_log_time_enabled(False)
         if spawn:
-            self.rec.spawn(connect=False)
+            _spawn_viewer(self.rec)
         sinks: list[Any] = []
         if self.rrd is not None:
             self.rrd.parent.mkdir(parents=True, exist_ok=True)
@@ -272,7 +278,13 @@ class RerunLogger:
         if self._closed:
             return
         self._closed = True
-        self.rec.flush()
+        try:
+            self.rec.flush()
+        except RuntimeError as e:  # the gRPC sink lost (or never had) its viewer
+            self.rec.disconnect()
+            raise ViewerUnavailable(
+                f"Rerun {self.viewer}: the log could not be delivered ({str(e).splitlines()[0]})"
+            ) from None
         self.rec.disconnect()
 
     def __enter__(self) -> RerunLogger:
@@ -280,3 +292,60 @@ class RerunLogger:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _spawn_viewer(rec: rr.RecordingStream) -> None:
+    """Start a Rerun viewer for ``rec`` to stream to (port 9876), or raise one clear
+    :class:`~cpf_jax.errors.ViewerUnavailable`.
+
+    The viewer is the ``rerun`` executable that ships with rerun-sdk (``rerun_cli``),
+    found even when the virtual environment's ``bin`` is not on ``PATH``. On Linux a
+    viewer window needs ``DISPLAY`` or ``WAYLAND_DISPLAY``; without one the run would
+    only fail when the log is flushed at its end.
+    """
+    import os
+    import shutil
+    import sys
+
+    if sys.platform.startswith("linux") and not (
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    ):
+        raise ViewerUnavailable(
+            "a Rerun viewer needs a display (DISPLAY / WAYLAND_DISPLAY unset): write --rrd FILE "
+            "and open it elsewhere, or --connect to a viewer on another machine"
+        )
+    exe = shutil.which("rerun")
+    try:
+        import rerun_cli
+
+        bundled = Path(rerun_cli.__file__).parent / "rerun"
+        if bundled.is_file():
+            exe = str(bundled)
+    except ImportError:
+        pass
+    try:
+        rr.spawn(connect=False, executable_path=exe, recording=rec)
+    except RuntimeError as e:
+        raise ViewerUnavailable(f"cannot start a Rerun viewer: {str(e).splitlines()[0]}") from None
+
+
+def check_viewer(url: str, timeout: float = 2.0) -> None:
+    """Raise :class:`~cpf_jax.errors.ViewerUnavailable` unless something listens at the
+    host and port of the Rerun gRPC ``url`` (``rerun+http://host:port/proxy``).
+
+    Rerun's gRPC sink connects in the background and only fails when the recording is
+    flushed, after the whole run: this check makes a mistyped URL or a viewer that is
+    not running a one-line error before tracking starts.
+    """
+    parts = urlsplit(url.removeprefix("rerun+"))
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ViewerUnavailable(f"Rerun viewer URL {url!r}: expected rerun+http://host:port/proxy")
+    port = parts.port or (443 if parts.scheme == "https" else 80)
+    try:
+        with socket.create_connection((parts.hostname, port), timeout=timeout):
+            pass
+    except OSError as e:
+        raise ViewerUnavailable(
+            f"Rerun viewer at {url}: cannot connect ({e.strerror or e}); start one with "
+            "`rerun` or leave out --connect"
+        ) from None

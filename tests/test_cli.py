@@ -169,3 +169,148 @@ def test_says_when_steps_left_the_histogram_window(capsys):
 
 def test_parse_box():
     np.testing.assert_allclose(parse_box("1, 2,3.5,4"), [1, 2, 3.5, 4])
+
+
+# ----------------------------------------------------------------------------- live sources
+# A camera (RealSense, Kinect v2, a .bag playback) is a LiveSource: iterable once, no
+# length, no ground truth. No device is attached here, so a fake camera replays frames.
+
+
+class _FakeCamera:
+    """A LiveSource replaying ``frames``; ``interrupt_after`` raises Ctrl-C mid-stream."""
+
+    def __init__(self, frames, size, interrupt_after=None):
+        from cpf_jax.io.base import LiveSource
+
+        class Camera(LiveSource):
+            kind = "fakecam"
+
+            def __iter__(cam):
+                for k, f in enumerate(frames):
+                    if interrupt_after is not None and k == interrupt_after:
+                        raise KeyboardInterrupt
+                    cam.served += 1
+                    yield f
+
+            def close(cam):
+                cam.closed = True
+
+        self.camera = Camera()
+        self.camera.size, self.camera.served, self.camera.closed = size, 0, False
+
+
+@pytest.fixture
+def camera(monkeypatch):
+    """``make(frames, interrupt_after=None)``: ``open_source`` returns a fake camera."""
+    import cpf_jax.io
+
+    made = []
+
+    def make(frames, interrupt_after=None):
+        cam = _FakeCamera(
+            frames, (frames[0].colour.shape[1], frames[0].colour.shape[0]), interrupt_after
+        ).camera
+        monkeypatch.setattr(cpf_jax.io, "open_source", lambda spec, kind=None: cam)
+        made.append(cam)
+        return cam
+
+    return make
+
+
+def test_live_stream_tracks_as_the_same_frames_recorded(folder, camera, tmp_path, capsys):
+    from cpf_jax.io import open_source
+
+    recorded = open_source(str(folder))
+    frames = [recorded.read(i) for i in range(len(recorded))]
+    box = ",".join(f"{v:g}" for v in recorded.init_box)
+    argv = ["--init", box, "--particles", "64", "--no-progress", "--max-frames", "8"]
+    ref = tmp_path / "ref.csv"
+    assert main([str(folder), *argv, "--out", str(ref)]) == 0
+    capsys.readouterr()
+    cam = camera(frames)
+    out = tmp_path / "live.csv"
+    assert main(["realsense", *argv, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "tracked 8 frames of fakecam" in printed and "SR@0.5" not in printed  # no GT
+    a, b = read_results(ref), read_results(out)
+    np.testing.assert_array_equal(b["frame"], np.arange(8))
+    np.testing.assert_allclose(b["boxes"], a["boxes"], atol=1e-3)  # same frames, same key
+    assert cam.closed and cam.served == 8  # --max-frames stops reading the camera
+
+
+def test_live_rgbd_learns_the_background_from_the_first_frames(camera, tmp_path):
+    # The camera first sees the empty room (3 frames), then the walker: --background 3
+    # takes those, and tracking starts at stream frame 3 with the --init box.
+    from cpf_jax.io import open_source
+    from cpf_jax.kernels.boxes import iou
+
+    src = open_source("occlusion_return")
+    frames = [src.empty_background()] * 3 + [src.read(i) for i in range(6)]
+    box = ",".join(f"{v:g}" for v in src.gt_boxes[0])
+    cam = camera(frames)
+    out = tmp_path / "r.csv"
+    argv = ["realsense", "--model", "grid-occlusion", "--background", "3", "--init", box]
+    assert main([*argv, "--particles", "64", "--out", str(out), "--no-progress"]) == 0
+    res = read_results(out)
+    np.testing.assert_array_equal(res["frame"], np.arange(3, 9))  # the stream ran out
+    ious = np.asarray(iou(res["boxes"], src.gt_boxes[res["frame"] - 3]))
+    assert np.all(ious > 0.5), ious
+    assert cam.closed
+
+
+def test_live_interrupt_keeps_the_rows_so_far_and_stops_the_camera(folder, camera, tmp_path):
+    from cpf_jax.io import open_source
+
+    recorded = open_source(str(folder))
+    cam = camera([recorded.read(i) for i in range(len(recorded))], interrupt_after=5)
+    out = tmp_path / "i.csv"
+    argv = ["kinect2", "--init", "100,80,60,190", "--particles", "64", "--out", str(out)]
+    assert main([*argv, "--no-progress"]) == 130
+    np.testing.assert_array_equal(read_results(out)["frame"], np.arange(5))
+    assert cam.closed
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        ([], "give --init"),
+        (["--init", "100,80,60,190", "--model", "rgbd", "--background", "empty"], "live stream"),
+        (
+            ["--init", "100,80,60,190", "--model", "rgbd", "--background", "3", "--start", "1"],
+            "cannot go back",
+        ),
+        (["--init", "100,80,60,190", "--start", "40"], "stream ended after 12 frames"),
+        (["--init", "900,900,50,50"], "outside"),
+    ],
+)
+def test_live_bad_input_is_one_line_and_exit_2(folder, camera, capsys, args, needle):
+    from cpf_jax.io import open_source
+
+    recorded = open_source(str(folder))
+    cam = camera([recorded.read(i) for i in range(len(recorded))])
+    assert main(["realsense", *args, "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cpf-track: error:") and needle in err, err
+    assert len(err.splitlines()) == 1
+    assert cam.closed
+
+
+def test_viewer_errors_are_one_line_before_tracking(folder, monkeypatch, tmp_path, capsys):
+    import socket
+    import sys
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "v.csv"
+    argv = [str(folder), "--no-progress", "--out", str(out)]
+    assert main([*argv, "--connect", f"rerun+http://127.0.0.1:{port}/proxy"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "cannot connect" in err and len(err.splitlines()) == 1
+    assert not out.exists()  # the check comes before tracking
+    if sys.platform.startswith("linux"):
+        monkeypatch.delenv("DISPLAY", raising=False)
+        monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+        assert main([*argv, "--spawn"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "needs a display" in err and len(err.splitlines()) == 1

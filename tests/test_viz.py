@@ -122,3 +122,73 @@ def test_bad_arguments(tmp_path):
             log.log_particles(0, np.zeros((3, 3)), np.ones(3))
         with pytest.raises(ValueError, match="3 particles but 2 weights"):
             log.log_particles(0, np.zeros((3, 2)), np.ones(2))
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_streams_to_a_running_viewer(tmp_path):
+    # `rerun --save FILE --port P` is a headless stand-in for a viewer: it listens for
+    # the SDK's gRPC stream and writes what arrives to FILE.
+    import subprocess
+    import sys
+    import time
+
+    port, saved = _free_port(), tmp_path / "received.rrd"
+    server = subprocess.Popen(
+        [sys.executable, "-m", "rerun", "--save", str(saved), "--port", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,  # `python -m rerun` runs the viewer binary as a child
+    )
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    try:
+        from cpf_jax.errors import ViewerUnavailable
+        from cpf_jax.viz import check_viewer
+
+        for _ in range(100):  # the server needs a moment to listen
+            try:
+                check_viewer(url, timeout=0.5)
+                break
+            except ViewerUnavailable:
+                time.sleep(0.1)
+        with RerunLogger(connect=url) as log:
+            for i in range(T):
+                log.log_box(i, np.array([1.0, 2.0, 3.0, 4.0]))
+                log.log_scalar(i, "ess", 10.0 + i)
+        for _ in range(100):  # the server writes as it receives
+            if saved.exists() and "/series/ess" in _entities(saved):
+                break
+            time.sleep(0.1)
+    finally:
+        import os
+        import signal
+
+        os.killpg(server.pid, signal.SIGTERM)
+        server.wait(timeout=10)
+    assert {"/series/ess", "/world/camera/tracker/box"} <= _entities(saved)
+
+
+def _entities(path) -> set[str]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the server's file has no footer until it stops
+        return {str(ch.entity_path) for ch in RrdReader(str(path)).stream()}
+
+
+@pytest.mark.parametrize(
+    "url, needle",
+    [
+        ("rerun+http://127.0.0.1:{port}/proxy", "cannot connect"),
+        ("127.0.0.1:9876", r"expected rerun\+http"),
+    ],
+)
+def test_unreachable_viewer_is_one_clear_error_before_logging(url, needle):
+    from cpf_jax.errors import ViewerUnavailable
+
+    with pytest.raises(ViewerUnavailable, match=needle):
+        RerunLogger(connect=url.format(port=_free_port()))

@@ -51,11 +51,12 @@ def _import(module: str, hint: str) -> ModuleType:
 
 
 class RealSenseSource(LiveSource):
-    """Intel RealSense colour + depth aligned to colour, or playback of a ``.bag`` recording.
+    """Intel RealSense colour + depth aligned to colour, or playback of a recording.
 
     Args:
       serial: which camera (default: the first found).
-      bag: play a ``.bag`` file instead of a live camera (ends with the file).
+      bag: play a recording instead of a live camera (ends with the file): ``.bag``
+        (older librealsense) or ``.db3`` (pyrealsense2 2.59 records only ``.db3``).
       width, height, fps: stream settings for a live camera.
       timeout_ms: how long to wait for a frame before giving up.
     """
@@ -93,8 +94,9 @@ class RealSenseSource(LiveSource):
             what = str(self.bag) if self.bag else f"RealSense camera {serial or ''}".strip()
             raise CameraUnavailable(f"{what}: cannot start streaming ({e})") from None
         device = profile.get_device()
+        self._playback = None
         if self.bag is not None:
-            device.as_playback().set_real_time(False)
+            self._playback = self._rewind(device.as_playback())
         self._mm_per_unit = float(device.first_depth_sensor().get_depth_scale()) * 1000.0
         self._align = rs.align(rs.stream.color)
         intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
@@ -104,11 +106,31 @@ class RealSenseSource(LiveSource):
         self.size = (int(intr.width), int(intr.height))
         self._running = True
 
+    def _rewind(self, playback: Any) -> Any:
+        """Pause a recording at its start, as fast as it can be read (not real time).
+
+        Playback starts with the pipeline, in real time: the first frame could go out
+        before ``set_real_time(False)``, and was then lost about one run in three
+        (pyrealsense2 2.59, ``tests/test_io.py``). Paused, rewound and drained here, it
+        is resumed by :meth:`__iter__`, so every recorded frame arrives, in order.
+        """
+        from datetime import timedelta
+
+        playback.pause()
+        playback.set_real_time(False)
+        playback.seek(timedelta(0))
+        ok, _ = self._pipeline.try_wait_for_frames(50)
+        while ok:  # frames delivered before the pause (they come again after the seek)
+            ok, _ = self._pipeline.try_wait_for_frames(50)
+        return playback
+
     def describe(self) -> str:
         return str(self.bag) if self.bag else "realsense"
 
     def __iter__(self) -> Iterator[Frame]:
         rs = self._rs
+        if self._playback is not None:
+            self._playback.resume()
         while self._running:
             ok, frames = self._pipeline.try_wait_for_frames(self.timeout_ms)
             if not ok:

@@ -11,9 +11,12 @@ from cpf_jax.io.files import VIDEO_SUFFIXES, NpzSource, VideoSource
 from cpf_jax.io.folders import open_folder
 from cpf_jax.io.synthetic import open_synthetic
 
-__all__ = ["open_source", "CAMERA_NAMES"]
+__all__ = ["open_source", "CAMERA_NAMES", "REALSENSE_SUFFIXES"]
 
 CAMERA_NAMES = ("realsense", "kinect2", "kinect")
+# RealSense recordings: .bag (ROS1, older librealsense) and .db3 (ROS2; pyrealsense2
+# 2.59's recorder writes only .db3).
+REALSENSE_SUFFIXES = (".bag", ".db3")
 
 
 def open_source(spec: str | Path, kind: str | None = None) -> FrameSource | LiveSource:
@@ -21,7 +24,7 @@ def open_source(spec: str | Path, kind: str | None = None) -> FrameSource | Live
 
     * a folder: its layout is detected from its content (``tum``, ``princeton``,
       ``rgbd``, ``otb``; see :mod:`cpf_jax.io.folders`), or forced with ``kind``;
-    * a ``.npz`` file, a video file, or a RealSense ``.bag`` recording;
+    * a ``.npz`` file, a video file, or a RealSense recording (``.bag`` or ``.db3``);
     * ``realsense[:serial]`` or ``kinect2[:serial]``: a live camera;
     * any other name that is not an existing path: a synthetic scenario from
       ``cpf_jax.synthetic`` (an existing path with the same name wins).
@@ -43,13 +46,13 @@ def open_source(spec: str | Path, kind: str | None = None) -> FrameSource | Live
         suffix = path.suffix.lower()
         if suffix == ".npz":
             return NpzSource(path)
-        if suffix == ".bag":
+        if suffix in REALSENSE_SUFFIXES:
             return RealSenseSource(bag=path)
         if suffix in VIDEO_SUFFIXES:
             return VideoSource(path)
         raise SourceError(
             f"{path}: unsupported file type {suffix or '(none)'} "
-            f"(expected a folder, .npz, .bag or a video: {', '.join(VIDEO_SUFFIXES)})"
+            f"(expected a folder, .npz, .bag, .db3 or a video: {', '.join(VIDEO_SUFFIXES)})"
         )
     looks_like_path = "/" in text or "\\" in text or path.suffix != "" or text.startswith(".")
     if looks_like_path or not text:
