@@ -19,9 +19,11 @@ millimetres) columns, the Rerun log the 2D and 3D points, and with ``joints``
 the summary gives each point's median 2D and 3D error.
 
 Live sources (``realsense[:serial]``, ``kinect2[:serial]``, a RealSense ``.bag``/``.db3``) are
-read once, in order: ``--init`` is required, ``--background N`` takes the stream's first N
-frames and tracking starts after them; the run ends with the stream, ``--max-frames`` or
-Ctrl-C, and the camera is stopped however it ends. The Rerun log goes to ``--rrd FILE``,
+read once, in order: ``--init`` is required (a box, or ``auto``: the first frame where
+:func:`cpf_jax.detect.find_person` finds someone against the background model),
+``--background N`` takes the stream's first N frames and tracking starts after them;
+the run ends with the stream, ``--max-frames`` or Ctrl-C, and the camera is stopped
+however it ends. The Rerun log goes to ``--rrd FILE``,
 a new viewer (``--spawn``) or a running one (``--connect URL``, checked before tracking).
 
 Exit codes: 0 success, 2 bad input (path, image, box, option, camera, viewer), 130
@@ -31,6 +33,7 @@ interrupted.
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
 from pathlib import Path
@@ -165,7 +168,11 @@ def build_parser() -> argparse.ArgumentParser:
         "RealSense .bag/.db3, or a live camera: realsense[:serial] or kinect2[:serial] "
         "(live: --init is required; --background N takes the stream's first N frames)",
     )
-    p.add_argument("--init", help="initial box x,y,w,h (0-based top-left pixels)")
+    p.add_argument(
+        "--init",
+        help="initial box x,y,w,h (0-based top-left pixels), or 'auto': start on the first "
+        "frame with a person-shaped foreground blob against the --background model",
+    )
     p.add_argument("--particles", "-n", type=int, default=200, help="number of particles")
     p.add_argument("--seed", type=int, default=0, help="PRNG seed")
     p.add_argument("--out", help="write frame,x,y,w,h rows (CSV) as the run goes")
@@ -310,18 +317,20 @@ def _track(args: argparse.Namespace, source) -> int:
     live = isinstance(source, LiveSource)
     calib = _calibration(args, source)
     register = _registrar(calib)
+    auto = args.init is not None and args.init.strip().lower() == "auto"
+    # A background model: the RGB-D models' foreground, and --init auto's person finder.
+    need_bg = args.model != "rgb" or auto
     if live:
-        n_frames = None
-        start, box, bg_frames, first_frame, frames = _open_live(args, source, register)
+        start, box, bg_frames, frames = _open_live(args, source, register, need_bg, auto)
     else:
         n_frames = len(source)
 
         def read(i: int) -> Frame:
             return register(source.read(i), source.names[i])
 
-        start, box = _start_and_box(args, source, n_frames)
+        start, box = _start_and_box(args, source, n_frames, auto)
         bg_frames = None
-        if args.model != "rgb":
+        if need_bg:
             if args.background == "empty":
                 empty = source.empty_background()
                 if empty is None:
@@ -332,9 +341,22 @@ def _track(args: argparse.Namespace, source) -> int:
                 bg_frames = [empty]
             else:
                 bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
-        first_frame = read(start)
-        stop = n_frames if args.max_frames is None else min(n_frames, start + args.max_frames)
-        frames = ((i, first_frame if i == start else read(i)) for i in range(start, stop))
+        frames = ((i, read(i)) for i in range(start, n_frames))
+    scene = None  # the background model of the empty scene
+    if bg_frames:
+        from cpf_jax.kernels.background import median_background
+
+        scene = jax.jit(median_background)(
+            np.stack([f.colour for f in bg_frames]), np.stack([f.depth for f in bg_frames])
+        )
+    if auto:
+        box, frames = _find_start(source, frames, scene)
+    frames = itertools.islice(frames, args.max_frames)  # None: to the end
+    try:
+        start, first_frame = next(frames)
+    except StopIteration:
+        raise UsageError(f"{source.describe()}: no frame to track") from None
+    frames = itertools.chain([(start, first_frame)], frames)
     check_box(box, source.size, source.describe())
 
     config_kw = {}
@@ -356,7 +378,7 @@ def _track(args: argparse.Namespace, source) -> int:
     if (colour_kw or args.layout_weight is not None) and args.model != "rgb":
         raise UsageError(f"--contrast and --layout* apply to --model rgb, not {args.model!r}")
     frame_hw = (source.size[1], source.size[0])
-    background = None
+    background = None if args.model == "rgb" else scene  # the colour layer has none
     if args.model == "rgb":
         config = ColourConfig(
             n_particles=args.particles,
@@ -374,7 +396,6 @@ def _track(args: argparse.Namespace, source) -> int:
             params = params._replace(layout_weight=jnp.float32(args.layout_weight))
         filt = build_colour_filter(config)
     else:
-        from cpf_jax.kernels.background import median_background
         from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
 
         config = RGBDConfig(
@@ -388,9 +409,6 @@ def _track(args: argparse.Namespace, source) -> int:
         if args.sigma is not None:
             params = params._replace(sigma_rgb=jnp.float32(args.sigma))
         filt = build_rgbd_filter(config)
-        background = jax.jit(median_background)(
-            np.stack([f.colour for f in bg_frames]), np.stack([f.depth for f in bg_frames])
-        )
     cascade = None
     point_names: tuple[str, ...] = ()
     if args.points is not None:
@@ -414,7 +432,10 @@ def _track(args: argparse.Namespace, source) -> int:
     )
 
     key = jax.random.PRNGKey(args.seed)
-    n_track = None if live else stop - start
+    n_track = None
+    if not live:
+        n_track = len(source) - start
+        n_track = n_track if args.max_frames is None else min(n_track, args.max_frames)
     # One entry per tracked frame, in order: its index, box, lost flag, body points.
     done: list[int] = []
     pred: list[np.ndarray] = []
@@ -518,10 +539,15 @@ def _track(args: argparse.Namespace, source) -> int:
     return 0
 
 
-def _start_and_box(args: argparse.Namespace, source, n_frames: int) -> tuple[int, np.ndarray]:
-    """The first frame to track and its box, for a recording (finite source)."""
+def _start_and_box(
+    args: argparse.Namespace, source, n_frames: int, auto: bool
+) -> tuple[int, np.ndarray | None]:
+    """The first frame to track and its box (None: ``--init auto`` finds it), for a
+    recording (finite source)."""
     if args.start is not None and not 0 <= args.start < n_frames:
         raise UsageError(f"--start {args.start} is outside 0..{n_frames - 1}")
+    if auto:
+        return (0 if args.start is None else args.start), None
     start = source.first_visible if args.init is None else 0
     if args.start is not None:
         start = args.start
@@ -535,26 +561,29 @@ def _start_and_box(args: argparse.Namespace, source, n_frames: int) -> tuple[int
         )
     box = source.init_box
     if box is None or start is None:
-        raise UsageError(f"{source.describe()}: no ground truth to start from; give --init x,y,w,h")
+        raise UsageError(
+            f"{source.describe()}: no ground truth to start from; give --init x,y,w,h or auto"
+        )
     return start, box
 
 
-def _open_live(args: argparse.Namespace, source, register):
-    """``(start, box, background frames, first frame, frames)`` of a live stream.
+def _open_live(args: argparse.Namespace, source, register, need_bg: bool, auto: bool):
+    """``(start, box, background frames, frames)`` of a live stream.
 
     A camera (or a RealSense recording) is read once, in order: the background frames
     (``--background N``: the first N frames, or ``A:B``; the scene should be empty
     then) come before tracking, which starts at ``--start`` (default: the frame after
     the background, 0 for ``--model rgb``). ``frames`` yields ``(index, frame)`` from
-    there until the stream ends, ``--max-frames`` or Ctrl-C.
+    there until the stream ends (``--max-frames`` and Ctrl-C are the caller's).
+    ``box`` is None with ``--init auto``.
     """
     where = source.describe()
     if args.init is None:
-        raise UsageError(f"{where}: a live source has no ground truth; give --init x,y,w,h")
-    box = parse_box(args.init)
-    bg = (0, 0)
-    if args.model != "rgb":
-        bg = parse_live_background(args.background)
+        raise UsageError(
+            f"{where}: a live source has no ground truth; give --init x,y,w,h or --init auto"
+        )
+    box = None if auto else parse_box(args.init)
+    bg = parse_live_background(args.background) if need_bg else (0, 0)
     start = bg[1] if args.start is None else args.start
     if start < bg[1]:
         raise UsageError(
@@ -563,8 +592,7 @@ def _open_live(args: argparse.Namespace, source, register):
         )
     stream = iter(source)
     bg_frames = []
-    first = None
-    for i in range(start + 1):
+    for i in range(start):
         try:
             frame = register(next(stream), f"{where} frame {i}")
         except StopIteration:
@@ -573,21 +601,35 @@ def _open_live(args: argparse.Namespace, source, register):
             ) from None
         if bg[0] <= i < bg[1]:
             bg_frames.append(frame)
-        first = frame
-    limit = args.max_frames
 
     def frames():
-        yield start, first
-        i = start + 1
-        while limit is None or i < start + limit:
-            try:
-                raw = next(stream)
-            except StopIteration:
-                return
+        for i, raw in enumerate(stream, start):
             yield i, register(raw, f"{where} frame {i}")
-            i += 1
 
-    return start, box, bg_frames or None, first, frames()
+    return start, box, bg_frames or None, frames()
+
+
+def _find_start(source, frames, scene):
+    """``(box, frames)`` for ``--init auto``: skip to the first frame in which
+    :func:`cpf_jax.detect.find_person` finds someone; ``frames`` starts there."""
+    from cpf_jax.detect import find_person
+
+    first = None
+    for i, frame in frames:
+        if first is None:
+            first = i
+        box = find_person(frame, scene)
+        if box is not None:
+            x, y, w, h = (int(v) for v in box)
+            print(f"--init auto: a person at {x},{y},{w},{h} in frame {i}", file=sys.stderr)
+            return box, itertools.chain([(i, frame)], frames)
+    where = source.describe()
+    if first is None:
+        raise UsageError(f"--init auto: {where} has no frame to search")
+    raise UsageError(
+        f"--init auto: no person-shaped foreground in frames {first}..{i} of {where} "
+        "(is the background the empty scene?); give --init x,y,w,h"
+    )
 
 
 def parse_live_background(text: str) -> tuple[int, int]:

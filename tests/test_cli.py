@@ -314,3 +314,35 @@ def test_viewer_errors_are_one_line_before_tracking(folder, monkeypatch, tmp_pat
         assert main([*argv, "--spawn"]) == 2
         err = capsys.readouterr().err.strip()
         assert "needs a display" in err and len(err.splitlines()) == 1
+
+
+def test_init_auto_starts_on_the_first_frame_with_a_person(camera, tmp_path, capsys):
+    from cpf_jax.io import open_source
+    from cpf_jax.kernels.boxes import iou
+
+    # A recording: the person is there from frame 0; the box is found, not given.
+    out = tmp_path / "a.csv"
+    argv = ["walk_across_slow", "--init", "auto", "--background", "empty", "--max-frames", "3"]
+    assert main([*argv, "--particles", "64", "--out", str(out), "--no-progress"]) == 0
+    res = read_results(out)
+    gt = open_source("walk_across_slow").gt_boxes
+    np.testing.assert_array_equal(res["frame"], np.arange(3))
+    assert float(iou(res["boxes"][:1], gt[:1])[0]) > 0.8
+    assert "--init auto: a person at" in capsys.readouterr().err
+    # A camera: 3 background frames of the empty room, 2 more, then he walks in.
+    src = open_source("walk_towards")
+    empty = src.empty_background()
+    cam = camera([empty] * 5 + [src.read(i) for i in range(4)])
+    out = tmp_path / "b.csv"
+    argv = ["realsense", "--model", "rgbd", "--init", "auto", "--background", "3"]
+    assert main([*argv, "--particles", "64", "--out", str(out), "--no-progress"]) == 0
+    res = read_results(out)
+    np.testing.assert_array_equal(res["frame"], np.arange(5, 9))
+    assert np.all(np.asarray(iou(res["boxes"], src.gt_boxes[:4])) > 0.5)
+    assert cam.closed
+    # Nobody comes: one error line.
+    capsys.readouterr()
+    camera([empty] * 6)
+    assert main([*argv, "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no person-shaped foreground in frames 3..5" in err[0]

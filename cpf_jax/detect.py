@@ -1,0 +1,157 @@
+"""Find a person to start tracking: the largest person-shaped foreground blob.
+
+A live camera has no ground truth, and a recording may have none: ``cpf-track
+--init auto`` starts the track on the first frame where this finds someone. It runs once
+per frame until it does, on the host (NumPy and OpenCV), not inside the jitted filter.
+
+Usage::
+
+    background = median_background(colour_frames, depth_frames)  # an empty scene
+    box = find_person(frame, background)        # [4] xywh float32, or None
+
+Rules (:class:`DetectConfig`):
+
+1. Foreground against the background model, as the RGB-D filter sees it
+   (``kernels.background.foreground_mask``: nearer than the background by
+   ``max(depth_abs, depth_rel * z)``, or a colour change where depth is missing).
+2. A morphological opening (``open_px``) removes speckle; a closing (``close_px``)
+   joins a body that a thin background gap split.
+3. 8-connected components. Each is cut to its main depth: the pixels within
+   ``max(depth_gap, depth_gap_rel * z)`` of its median depth, keeping the largest
+   connected part, so two people side by side at different depths (or a person and the
+   chair he touches) are not one blob; the rest is examined again as blobs of its own.
+   Colour-only pixels (no depth) stay with the main part.
+4. A person is at least ``min_area`` of the frame and ``min_height`` of its height,
+   and no wider than ``max_aspect`` times his height (head and shoulders cut by the
+   frame's edge are about as wide as tall; a row of desks is not).
+
+The largest qualifying blob wins; its tight box is returned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import jax
+import numpy as np
+
+from cpf_jax.kernels.background import Background, foreground_mask
+from cpf_jax.types import Frame
+
+__all__ = ["DetectConfig", "person_boxes", "find_person"]
+
+
+@dataclass(frozen=True)
+class DetectConfig:
+    """Thresholds of :func:`person_boxes` (module docstring)."""
+
+    depth_abs: float = 150.0  # mm: foreground when nearer than the background by this ...
+    depth_rel: float = 0.05  # ... or this fraction of the background depth
+    colour_threshold: float = 40.0  # uint8 levels, where depth is missing
+    open_px: int = 3
+    close_px: int = 7
+    depth_gap: float = 300.0  # mm: a blob is cut to its median depth +- this ...
+    depth_gap_rel: float = 0.1  # ... or this fraction of it
+    min_area: float = 0.004  # share of the frame's pixels
+    min_height: float = 0.15  # share of the frame's height
+    max_aspect: float = 1.3  # width / height
+
+    def __post_init__(self) -> None:
+        if self.open_px < 1 or self.close_px < 1:
+            raise ValueError(
+                f"open_px and close_px must be >= 1, got {self.open_px}, {self.close_px}"
+            )
+        if not (0 < self.min_area < 1 and 0 < self.min_height <= 1 and self.max_aspect > 0):
+            raise ValueError(
+                "min_area must be in (0, 1), min_height in (0, 1] and max_aspect > 0, got "
+                f"{self.min_area}, {self.min_height}, {self.max_aspect}"
+            )
+
+
+@lru_cache(maxsize=8)
+def _mask_fn(depth_abs: float, depth_rel: float, colour_threshold: float):
+    return jax.jit(
+        lambda c, d, bg: foreground_mask(
+            c, d, bg, depth_abs=depth_abs, depth_rel=depth_rel, colour_threshold=colour_threshold
+        )
+    )
+
+
+def _largest_component(mask: np.ndarray) -> np.ndarray:
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(mask, bool)
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return labels == k
+
+
+def person_boxes(
+    frame: Frame, background: Background, config: DetectConfig = DetectConfig()
+) -> np.ndarray:
+    """``[K, 4]`` float32 xywh boxes of the person-shaped foreground blobs, largest first.
+
+    ``frame``: one registered frame (``colour [H, W, 3] uint8``, ``depth [H, W] uint16``
+    mm, zeros where missing); ``background``: its scene without people
+    (``kernels.background.median_background``). Rules in the module docstring.
+    """
+    colour = np.asarray(frame.colour)
+    depth = np.asarray(frame.depth)
+    if colour.ndim != 3 or colour.shape[:2] != depth.shape:
+        raise ValueError(
+            f"frame: colour {colour.shape} and depth {depth.shape} must be [H, W, 3] and [H, W]"
+        )
+    if tuple(np.shape(background.depth)) != depth.shape:
+        raise ValueError(
+            f"background is {np.shape(background.depth)} but the frame is {depth.shape}"
+        )
+    h, w = depth.shape
+    c = config
+    fg = np.asarray(
+        _mask_fn(c.depth_abs, c.depth_rel, c.colour_threshold)(colour, depth, background)
+    )
+    fg = fg.astype(np.uint8)
+    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((c.open_px, c.open_px), np.uint8))
+    fg = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, np.ones((c.close_px, c.close_px), np.uint8))
+    z = depth.astype(np.float32)
+    min_px = c.min_area * h * w
+    found = []
+    queue = [fg.astype(bool)]  # masks of unexamined blobs (the frame's first)
+    while queue:
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(
+            queue.pop().astype(np.uint8), connectivity=8
+        )
+        for k in range(1, n):
+            if stats[k, cv2.CC_STAT_AREA] < min_px:
+                continue
+            blob = labels == k
+            measured = blob & (z > 0)
+            if measured.sum() >= 0.2 * blob.sum():  # cut to the main depth
+                med = float(np.median(z[measured]))
+                near = np.abs(z - med) <= max(c.depth_gap, c.depth_gap_rel * med)
+                main = _largest_component(blob & (near | (z == 0)))
+                # The rest: other blobs at other depths. (Each pass takes a non-empty
+                # part of a blob, so the queue runs dry.)
+                if 0 < main.sum() < blob.sum():
+                    queue.append(blob & ~main)
+                    blob = main
+            area = int(blob.sum())
+            if area < min_px:
+                continue
+            ys, xs = np.nonzero(blob)
+            bx, by = xs.min(), ys.min()
+            bw, bh = xs.max() - bx + 1, ys.max() - by + 1
+            if bh < c.min_height * h or bw > c.max_aspect * bh:
+                continue
+            found.append((area, (bx, by, bw, bh)))
+    found.sort(key=lambda t: -t[0])
+    return np.asarray([b for _, b in found], np.float32).reshape(-1, 4)
+
+
+def find_person(
+    frame: Frame, background: Background, config: DetectConfig = DetectConfig()
+) -> np.ndarray | None:
+    """``[4]`` float32 xywh box of the largest person-shaped blob, or None."""
+    boxes = person_boxes(frame, background, config)
+    return boxes[0] if len(boxes) else None
