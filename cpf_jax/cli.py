@@ -245,6 +245,11 @@ def build_parser() -> argparse.ArgumentParser:
         "gradient energy in 4 orientations",
     )
     p.add_argument(
+        "--layout-mirror",
+        action="store_true",
+        help="--model rgb: also match the layout's mirror image (a walker who turned round)",
+    )
+    p.add_argument(
         "--layout-weight",
         type=float,
         default=None,
@@ -371,8 +376,11 @@ def _track(args: argparse.Namespace, source) -> int:
         colour_kw["layout"] = parse_layout(args.layout)
     if args.layout_feature is not None:
         colour_kw["layout_feature"] = args.layout_feature
-    if (args.layout_feature or args.layout_weight is not None) and colour_kw.get("layout") is None:
-        raise UsageError("--layout-feature and --layout-weight need --layout RxC")
+    if args.layout_mirror:
+        colour_kw["layout_mirror"] = True
+    layout_opts = args.layout_feature or args.layout_mirror or args.layout_weight is not None
+    if layout_opts and colour_kw.get("layout") is None:
+        raise UsageError("--layout-feature, --layout-mirror and --layout-weight need --layout RxC")
     if args.layout_weight is not None and not args.layout_weight >= 0:
         raise UsageError(f"--layout-weight must be >= 0, got {args.layout_weight}")
     if (colour_kw or args.layout_weight is not None) and args.model != "rgb":

@@ -284,11 +284,12 @@ def grid_ncc(
 ) -> Array:
     """Normalised cross-correlation ``[N]`` of each box's ``rows x cols`` cell means with
     ``template``, for ``boxes [N, 4] (x, y, w, h)`` and an ``integral_image`` table
-    ``[h+1, w+1, c]``.
+    ``[h+1, w+1, c]``; ``[N, T]`` for ``T`` templates ``[T, rows * cols * c]`` (the cell
+    means are computed once).
 
     ``template [rows * cols * c]`` is zero-mean and unit-norm, cells row-major and
     channels last (as ``colour.layout_vectors`` makes them). The result equals
-    ``layout_vectors(table, boxes, (rows, cols)) @ template``: cells as in
+    ``layout_vectors(table, boxes, (rows, cols)) @ template`` (``@ template.T``): cells as in
     :func:`grid_sums`, a cell outside the frame has mean 0, a box of uniform
     feature scores 0.
 
@@ -308,8 +309,10 @@ def grid_ncc(
     ys, xs = lax.optimization_barrier((ys, xs))  # [rows + 1, N], [cols + 1, N]
     planes = jnp.moveaxis(table, -1, 0).reshape(c, -1)
     # Channel-major cells, to match the stacked planes below.
-    t = jnp.moveaxis(jnp.asarray(template, jnp.float32).reshape(rows, cols, c), -1, 0)
-    t = t.reshape(1, n_cells)
+    template = jnp.asarray(template, jnp.float32)
+    several = template.ndim == 2
+    t = template.reshape(-1, rows, cols, c)
+    t = jnp.moveaxis(t, -1, 1).reshape(-1, n_cells)  # [T, n_cells]
     ones = jnp.ones((1, n_cells), jnp.float32)
 
     def block(ys: Array, xs: Array) -> Array:
@@ -325,9 +328,10 @@ def grid_ncc(
         # Centred before the dot product too: a uniform box then scores exactly 0
         # (its cell means times a template summing to zero only up to rounding).
         centred = means - (ones @ means) / n_cells
-        dot = (t @ centred)[0]
+        dot = t @ centred  # [T, n]
         norm = jnp.sqrt((ones @ (centred * centred))[0])
-        return dot / jnp.maximum(norm, 1e-3)
+        ncc = dot / jnp.maximum(norm, 1e-3)
+        return ncc.T if several else ncc[0]
 
     return _chunked(block, (ys, xs), chunk, (1, 1))
 

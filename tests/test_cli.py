@@ -76,7 +76,7 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
     assert main(argv) == 0
     res = read_results(out)
     assert len(res["frame"]) == 3 and np.isfinite(res["boxes"]).all()
-    argv += ["--layout-feature", "gradient", "--layout-weight", "20"]
+    argv += ["--layout-feature", "gradient", "--layout-weight", "20", "--layout-mirror"]
     assert main(argv) == 0
     assert np.isfinite(read_results(out)["boxes"]).all()
 
@@ -94,6 +94,7 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
         (["{folder}", "--layout", "6x2", "--layout-weight", "-1"], "--layout-weight"),
         (["{folder}", "--model", "grid", "--layout", "6x2", "--layout-weight", "5"], "--model rgb"),
         (["{folder}", "--layout-feature", "gradient"], "need --layout"),
+        (["{folder}", "--layout-mirror"], "need --layout"),
         (["{folder}", "--model", "rgbd", "--contrast", "mixture"], "--model rgb"),
         (["{folder}", "--model", "rgbd", "--background", "empty"], "empty-scene"),
     ],

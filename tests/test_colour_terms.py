@@ -20,6 +20,7 @@ from cpf_jax.colour import (
     layout_table,
     layout_vectors,
     luminance,
+    mirror_layout,
     mixture_weights,
     n_bins_of,
     track_boxes,
@@ -235,9 +236,37 @@ def test_grid_ncc_matches_numpy_under_jit_and_vmap(feature, grid):
     both = np.asarray(g(jnp.stack([t, -t])))
     np.testing.assert_allclose(both[0], got, atol=1e-5)
     np.testing.assert_allclose(both[1], -got, atol=1e-5)
+    # two templates at once: [N, 2], the same as one at a time
+    two = np.asarray(
+        jax.jit(lambda b: grid_ncc(table, b, jnp.stack([t, -t]), *grid, chunk=16))(
+            jnp.asarray(boxes)
+        )
+    )
+    assert two.shape == (n, 2)
+    np.testing.assert_allclose(two, np.stack([got, -got], -1), atol=1e-5)
     # a box of uniform feature scores 0, not NaN
     flat = layout_table(jnp.full_like(frame.colour, 90), feature)
     assert float(grid_ncc(flat, jnp.asarray(boxes[:1]), t, *grid)[0]) == 0.0
+
+
+@pytest.mark.parametrize("feature,grid", [("luminance", (12, 3)), ("gradient", (6, 2))])
+def test_mirrored_layout_is_the_layout_of_the_mirrored_frame(feature, grid):
+    """``mirror_layout`` of a box's template equals the template of the same box in the
+    horizontally flipped frame (NumPy reference features), so a person who turns round
+    scores as his first view did."""
+    frame, box = _frame()
+    lum = np.asarray(luminance(frame.colour))
+    flip = lum[:, ::-1]
+    feat, feat_flip = (
+        (lum, flip)
+        if feature == "luminance"
+        else (_gradient_reference(lum), _gradient_reference(flip))
+    )
+    mirrored_box = np.array([W - box[0] - box[2], box[1], box[2], box[3]], np.float32)
+    want = _layout_reference(feat_flip, mirrored_box, *grid)
+    got = np.asarray(mirror_layout(jnp.asarray(_layout_reference(feat, box, *grid)), grid, feature))
+    np.testing.assert_allclose(got, want, atol=1e-4)
+    assert abs(float(np.dot(got, want)) - 1.0) < 1e-4
 
 
 def _moving(n: int) -> tuple[Frame, np.ndarray]:
@@ -253,12 +282,20 @@ def _moving(n: int) -> tuple[Frame, np.ndarray]:
         ("linear", (12, 3), "luminance"),
         ("mixture", (12, 3), "luminance"),
         ("linear", (6, 2), "gradient"),
+        ("linear", (6, 2), "gradient+mirror"),
     ],
 )
 def test_filter_tracks_with_the_optional_terms(contrast, layout, feature):
     """Stated threshold: IoU >= 0.5 on >= 95 % of 30 frames, with the term switched on."""
     frames, gt = _moving(30)
-    config = ColourConfig(n_particles=128, contrast=contrast, layout=layout, layout_feature=feature)
+    feature, _, mirror = feature.partition("+")
+    config = ColourConfig(
+        n_particles=128,
+        contrast=contrast,
+        layout=layout,
+        layout_feature=feature,
+        layout_mirror=bool(mirror),
+    )
     params = default_colour_params()._replace(layout_rate=jnp.float32(0.05))
     filt = build_colour_filter(config)
     boxes = np.asarray(
