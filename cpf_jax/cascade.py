@@ -61,6 +61,7 @@ from cpf_jax.points import (
     PointInputs,
     PointParams,
     PointState,
+    body_model,
     build_point_filter,
     default_point_params,
 )
@@ -77,6 +78,7 @@ __all__ = [
     "build_cascade",
     "track_cascade",
     "check_points",
+    "body_surface",
 ]
 
 BOX_SOURCES = ("estimate", "report")
@@ -148,6 +150,39 @@ def check_points(points_xy, frame_hw: tuple[int, int]) -> np.ndarray:
     return p.astype(np.float32)
 
 
+def _point_inputs(
+    config: CascadeConfig, frame: Frame, box: Array, background: Background | None
+) -> PointInputs:
+    """Layer 2's inputs for ``box``: the depth, and the foreground when configured."""
+    fg = None
+    if config.foreground and background is not None:
+        fg = foreground_mask(
+            frame.colour,
+            frame.depth,
+            background,
+            depth_abs=config.foreground_depth_mm,
+            depth_rel=config.foreground_depth_rel,
+        )
+    return PointInputs(frame.depth, box, fg)
+
+
+def body_surface(
+    config: CascadeConfig, frame: Frame, box_xywh: Array, background: Background | None = None
+) -> Array:
+    """``[Hw * Ww, 3]`` mm: camera-frame points of layer 2's segmented body in ``box_xywh``
+    (the window, foreground and segmentation its step uses), NaN off the body.
+
+    For display: ``cpf-track --points`` logs it to Rerun as ``world/body/surface`` with
+    ``info.box_used``. Static shapes; jit it once (``config`` static). It repeats the
+    step's pre-processing, so it costs about as much as a layer-2 step's segmentation.
+    """
+    box = jnp.asarray(box_xywh, jnp.float32)
+    inp = _point_inputs(config, frame, box, background)
+    bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
+    pts = jnp.where(bm.body[..., None], bm.points, jnp.nan)
+    return pts.reshape(-1, 3)
+
+
 def build_cascade(config: CascadeConfig) -> Filter:
     """``Filter(init, step)`` of the two-layer cascade.
 
@@ -158,16 +193,7 @@ def build_cascade(config: CascadeConfig) -> Filter:
     layer2 = build_point_filter(config.points)
 
     def inputs(frame: Frame, box: Array, background: Background | None) -> PointInputs:
-        fg = None
-        if config.foreground and background is not None:
-            fg = foreground_mask(
-                frame.colour,
-                frame.depth,
-                background,
-                depth_abs=config.foreground_depth_mm,
-                depth_rel=config.foreground_depth_rel,
-            )
-        return PointInputs(frame.depth, box, fg)
+        return _point_inputs(config, frame, box, background)
 
     def init(
         params: CascadeParams,

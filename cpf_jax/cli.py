@@ -425,11 +425,15 @@ def _track(args: argparse.Namespace, source) -> int:
     init = jax.jit(filt.init)
     step = jax.jit(filt.step)
 
-    logger = None
+    logger = surface = None
     if args.rrd or args.spawn or args.connect:
         from cpf_jax.viz import RerunLogger
 
         logger = RerunLogger(args.rrd, spawn=args.spawn, connect=args.connect)
+        if cascade is not None:  # layer 2's segmented body, as a 3D point cloud
+            from cpf_jax.cascade import body_surface
+
+            surface = jax.jit(body_surface, static_argnums=0)
     point_columns = tuple(
         f"{n}_{c}" for n in point_names for c in ("x", "y", "X_mm", "Y_mm", "Z_mm")
     )
@@ -461,6 +465,7 @@ def _track(args: argparse.Namespace, source) -> int:
             t0 = time.perf_counter()
             p2 = np.full((n_points, 2), np.nan, np.float32)
             p3 = np.full((n_points, 3), np.nan, np.float32)
+            box_used = jnp.asarray(box, jnp.float32)  # layer 2's box (cascade)
             if state is None:
                 if cascade is not None:
                     state = init(
@@ -481,6 +486,7 @@ def _track(args: argparse.Namespace, source) -> int:
                 if cascade is not None:
                     p2 = np.asarray(info.points.mean)
                     p3 = np.asarray(info.points.mean3d)
+                    box_used = info.box_used
                     info = info.box
                 # The RGB-D filters report the box to score (e.g. the visible part).
                 est = np.asarray(getattr(info, "report", info.estimate))
@@ -513,6 +519,8 @@ def _track(args: argparse.Namespace, source) -> int:
                 if cascade is not None:
                     logger.log_points2d(i, p2, labels=list(point_names))
                     logger.log_points3d(i, p3, labels=list(point_names))
+                    body = surface(config, frame, box_used, background)
+                    logger.log_points3d(i, body, "body/surface", radius=0.004)
             bar.update()
         bar.close()  # the final progress line only for a completed run
     finally:

@@ -4,6 +4,8 @@ lost-box recovery, jit vs vmap, bad input, and ``cpf-track --points``."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,6 +13,7 @@ import pytest
 
 from cpf_jax.cascade import (
     CascadeConfig,
+    body_surface,
     build_cascade,
     check_points,
     default_cascade_params,
@@ -156,6 +159,26 @@ def test_rgb_variant_box_is_the_colour_layer(walk):
     assert np.isfinite(info.points.mean).all()
 
 
+def test_body_surface_is_the_walker_in_3d(walk):
+    """The surface logged for display: camera-frame points (mm) that project into the
+    box and lie at the walker's depth (his joints' range, +-0.4 m), NaN elsewhere."""
+    seq, idx, bg = walk
+    config = dataclasses.replace(_config(seq), foreground=True)
+    t = T // 2
+    frame = Frame(jnp.asarray(seq.colour[t]), jnp.asarray(seq.depth[t]))
+    f = jax.jit(body_surface, static_argnums=0)
+    pts = np.asarray(f(config, frame, jnp.asarray(seq.boxes[t]), bg))
+    body = pts[np.all(np.isfinite(pts), axis=1)]
+    assert len(body) > 200 and np.isnan(pts).any()
+    k = seq.intrinsics
+    u, v = k.fx * body[:, 0] / body[:, 2] + k.cx, k.fy * body[:, 1] / body[:, 2] + k.cy
+    x, y, w, h = seq.boxes[t]
+    margin = 0.15 * max(w, h)  # the layer-2 window has a margin around the box
+    assert np.all((u > x - margin) & (u < x + w + margin) & (v > y - margin) & (v < y + h + margin))
+    z = seq.joints3d[t][:, 2]
+    assert np.all((body[:, 2] > z.min() - 400) & (body[:, 2] < z.max() + 400))
+
+
 @pytest.mark.parametrize(
     "points, message",
     [
@@ -224,6 +247,7 @@ def test_cli_points_writes_joints_and_errors(tmp_path, capsys):
 
     paths = {str(ch.entity_path) for ch in RrdReader(str(rrd)).stream()}
     assert any("body/points3d" in p for p in paths) and any("body/points" in p for p in paths)
+    assert any("body/surface" in p for p in paths)
 
 
 def test_cli_points_joints_needs_a_synthetic_scenario(tmp_path, capsys):
