@@ -131,6 +131,12 @@ them against the default in ``likelihood_terms``):
   Off by default, like the layout itself: it narrows but does not close the layout's
   Table 3.5 gap (hierarchical and plain tie at 91.9, below the no-layout 95.2), and
   the luminance layout's Crossing AUC stays below CSRT's 70.
+  With the slow template update (``template_update``, rate 0.05) the luminance
+  layout 12x3 at weight 10 reaches Crossing 99.5 / 70.1 (5 keys; the update alone:
+  66.0 / 57.0), but the training scenes' worst walk falls to 94.7 (random walk, N =
+  100); adding the mirror restores it (98.3 / 96.9) and gives back Crossing's AUC
+  (98.0 / 68.9); AR1 at N = 50 scores 90.8 hierarchical and 90.4 plain (2026-11-25,
+  scratch runs; no default changed).
 
 Bins: 8 x 8 H-S bins for chromatic pixels plus 8 value bins for achromatic
 (dark, grey, white) pixels whose hue is noise (``kernels.color.hsv_bin_index``);
