@@ -36,7 +36,7 @@ import rerun as rr
 from cpf_jax.errors import ViewerUnavailable
 from cpf_jax.types import Frame, Intrinsics
 
-__all__ = ["RerunLogger", "weight_colours", "IMAGE_SPACE"]
+__all__ = ["RerunLogger", "weight_colours", "IMAGE_SPACE", "check_viewer"]
 
 IMAGE_SPACE = "world/camera"
 TIMELINE = "frame"
