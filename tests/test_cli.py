@@ -335,7 +335,9 @@ def test_init_auto_starts_on_the_first_frame_with_a_person(camera, tmp_path, cap
     empty = src.empty_background()
     cam = camera([empty] * 5 + [src.read(i) for i in range(4)])
     out = tmp_path / "b.csv"
-    argv = ["realsense", "--model", "rgbd", "--init", "auto", "--background", "3"]
+    # (--model rgb: the colour filter ignores the background; the RGB-D live path is
+    # tested above, and this keeps to one cheaper compile.)
+    argv = ["realsense", "--init", "auto", "--background", "3"]
     assert main([*argv, "--particles", "64", "--out", str(out), "--no-progress"]) == 0
     res = read_results(out)
     np.testing.assert_array_equal(res["frame"], np.arange(5, 9))
