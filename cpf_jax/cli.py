@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cpf_jax.errors import CpfJaxError
+from cpf_jax.errors import CpfJaxError, ViewerUnavailable
 from cpf_jax.points import BODY_POINT_DEPTH_OFFSET_MM, BODY_POINTS
 
 __all__ = ["main", "parse_box"]
@@ -291,6 +291,22 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def _close_sinks(writer, logger, failing: bool = False) -> None:
+    """Close the results CSV and the Rerun logger. With ``failing`` (an exception is
+    already on its way), a viewer that cannot take the log is one warning line instead
+    of an error that would hide the first."""
+    if writer is not None:
+        writer.close()
+    if logger is None:
+        return
+    try:
+        logger.close()
+    except ViewerUnavailable as e:
+        if not failing:
+            raise
+        print(f"cpf-track: warning: {e}", file=sys.stderr)
+
+
 def _run(args: argparse.Namespace) -> int:
     if args.tune_malloc:
         from cpf_jax.cpu_tuning import tune_malloc
@@ -523,11 +539,12 @@ def _track(args: argparse.Namespace, source) -> int:
                     logger.log_points3d(i, body, "body/surface", radius=0.004)
             bar.update()
         bar.close()  # the final progress line only for a completed run
-    finally:
-        if writer is not None:
-            writer.close()
-        if logger is not None:
-            logger.close()
+    except BaseException:
+        # An error or Ctrl-C is on its way: close the sinks (the CSV keeps its rows, the
+        # .rrd is completed) without letting a viewer that cannot take the log replace it.
+        _close_sinks(writer, logger, failing=True)
+        raise
+    _close_sinks(writer, logger)
 
     n_box = config.box.n_particles if cascade is not None else config.n_particles
     print(

@@ -271,6 +271,35 @@ def test_live_interrupt_keeps_the_rows_so_far_and_stops_the_camera(folder, camer
     assert cam.closed
 
 
+def test_live_interrupt_is_not_hidden_by_a_viewer_error(
+    folder, camera, monkeypatch, tmp_path, capsys
+):
+    # A streamed log whose viewer went away fails at close. After Ctrl-C that is one
+    # warning line, and the run still ends as interrupted (130); without Ctrl-C the same
+    # failure is the run's error (exit 2).
+    from cpf_jax import viz
+    from cpf_jax.errors import ViewerUnavailable
+    from cpf_jax.io import open_source
+
+    real_close = viz.RerunLogger.close
+
+    def close(logger):
+        real_close(logger)
+        raise ViewerUnavailable("Rerun viewer: the log could not be delivered (gone)")
+
+    monkeypatch.setattr(viz.RerunLogger, "close", close)
+    recorded = open_source(str(folder))
+    frames = [recorded.read(i) for i in range(len(recorded))]
+    argv = ["kinect2", "--init", "100,80,60,190", "--particles", "64", "--no-progress"]
+    for interrupt, code in ((5, 130), (None, 2)):
+        cam = camera(frames, interrupt_after=interrupt)
+        assert main([*argv, "--max-frames", "6", "--rrd", str(tmp_path / "x.rrd")]) == code
+        err = capsys.readouterr().err
+        assert "could not be delivered" in err and cam.closed
+        if interrupt:
+            assert "warning" in err and "interrupted" in err
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [
