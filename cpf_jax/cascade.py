@@ -61,6 +61,7 @@ from cpf_jax.points import (
     PointInputs,
     PointParams,
     PointState,
+    body_extremities,
     body_model,
     build_point_filter,
     default_point_params,
@@ -79,6 +80,7 @@ __all__ = [
     "track_cascade",
     "check_points",
     "body_surface",
+    "find_body_points",
 ]
 
 BOX_SOURCES = ("estimate", "report")
@@ -181,6 +183,23 @@ def body_surface(
     bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
     pts = jnp.where(bm.body[..., None], bm.points, jnp.nan)
     return pts.reshape(-1, 3)
+
+
+def find_body_points(
+    config: CascadeConfig, frame: Frame, box_xywh: Array, background: Background | None = None
+) -> tuple[Array, Array]:
+    """Points to start layer 2 on, found in the body inside ``box_xywh``: frame positions
+    ``[5, 2]`` of ``cpf_jax.points.AUTO_POINTS`` (head, hands, feet) and the geodesic
+    reach ``[4]`` mm of the hands and feet (``cpf_jax.points.body_extremities``).
+
+    The body is segmented as a layer-2 step does it (window, foreground,
+    components). ``cpf-track --points auto`` uses it on the start frame. Static
+    shapes; jit it once (``config`` static).
+    """
+    box = jnp.asarray(box_xywh, jnp.float32)
+    inp = _point_inputs(config, frame, box, background)
+    bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
+    return body_extremities(config.points, bm)
 
 
 def build_cascade(config: CascadeConfig) -> Filter:

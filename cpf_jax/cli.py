@@ -12,8 +12,10 @@ folder's own ``calibration.json`` (``cpf_jax.registration`` format). The RGB-D
 models learn a background from ``--background`` frames of the recording.
 
 ``--points`` adds layer 2 (``cpf_jax.cascade``): points on the body (``joints``:
-a synthetic scenario's head, hands and feet; or ``x,y;x,y;...`` pixels of the
-start frame) tracked in depth inside every layer-1 box. The CSV gains
+a synthetic scenario's head, hands and feet; ``auto``: head, hands and feet found
+on the body in the start box, :func:`cpf_jax.cascade.find_body_points`, which
+pairs with ``--init auto``; or ``x,y;x,y;...`` pixels of the start frame) tracked
+in depth inside every layer-1 box. The CSV gains
 ``<point>_x, <point>_y`` (pixels) and ``<point>_X_mm, _Y_mm, _Z_mm`` (camera
 millimetres) columns, the Rerun log the 2D and 3D points, and with ``joints``
 the summary gives each point's median 2D and 3D error.
@@ -115,7 +117,7 @@ def parse_points(text: str, source, start: int) -> tuple[np.ndarray, tuple[str, 
     except ValueError:
         pts = []
     if not pts or any(len(q) != 2 for q in pts):
-        raise UsageError(f"--points expects 'joints' or x,y;x,y;..., got {text!r}")
+        raise UsageError(f"--points expects 'joints', 'auto' or x,y;x,y;..., got {text!r}")
     return np.asarray(pts, np.float32), tuple(f"p{k}" for k in range(len(pts)))
 
 
@@ -259,8 +261,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--points",
         default=None,
         help="also track points on the body with the depth layer (the cascade): "
-        "'joints' (a synthetic scenario's head, hands and feet) or x,y;x,y;... "
-        "(pixels in the start frame; quote it in a shell)",
+        "'joints' (a synthetic scenario's head, hands and feet), 'auto' (head, hands "
+        "and feet found on the body in the start box; a person facing the camera) or "
+        "x,y;x,y;... (pixels in the start frame; quote it in a shell)",
     )
     p.add_argument(
         "--point-particles", type=int, default=100, help="particles per body point (--points)"
@@ -436,7 +439,7 @@ def _track(args: argparse.Namespace, source) -> int:
     cascade = None
     point_names: tuple[str, ...] = ()
     if args.points is not None:
-        cascade = _cascade(args, source, first_frame, start, config, params, calib, background)
+        cascade = _cascade(args, source, first_frame, start, box, config, params, calib, background)
         config, params, filt, points0, point_names = cascade
     init = jax.jit(filt.init)
     step = jax.jit(filt.step)
@@ -687,7 +690,7 @@ def _frame_name(source, i: int) -> str:
     return names[i] if names is not None else f"{source.describe()} frame {i}"
 
 
-def _cascade(args, source, first_frame, start, box_config, box_params, calib, background):
+def _cascade(args, source, first_frame, start, box, box_config, box_params, calib, background):
     """``(config, params, filter, points, names)`` of the cascade (``--points``)."""
     import jax.numpy as jnp
 
@@ -700,8 +703,10 @@ def _cascade(args, source, first_frame, start, box_config, box_params, calib, ba
         raise UsageError(f"--point-particles must be >= 1, got {args.point_particles}")
     if getattr(source, "has_depth", True) is False or not np.any(first_frame.depth):
         raise UsageError(f"--points needs depth: {source.describe()} has none at frame {start}")
-    points, names = parse_points(args.points, source, start)
-    points = check_points(points, (source.size[1], source.size[0]))
+    auto = args.points == "auto"
+    if not auto:
+        points, names = parse_points(args.points, source, start)
+        points = check_points(points, (source.size[1], source.size[0]))
     if isinstance(box_config, ColourConfig):  # the colour layer as the "rgb" variant
         box_config = RGBDConfig(
             variant="rgb",
@@ -722,13 +727,38 @@ def _cascade(args, source, first_frame, start, box_config, box_params, calib, ba
         points=PointFilterConfig(n_particles=args.point_particles, **point_kw),
         foreground=foreground,
     )
+    if auto:
+        points, names = _auto_points(config, first_frame, box, background, start)
     params = default_cascade_params(config)
     point_params = params.points
-    if args.points == "joints":
+    if args.points in ("joints", "auto"):  # head, hands, feet: the joints lie behind
         offset = jnp.asarray(JOINT_DEPTH_OFFSET_MM, jnp.float32)
         point_params = point_params._replace(joint_depth_offset=offset)
     params = params._replace(box=box_params, points=point_params)
     return config, params, build_cascade(config), points, names
+
+
+def _auto_points(config, frame, box, background, start: int):
+    """``--points auto``: head, hands and feet found on the body in the start box
+    (``cpf_jax.cascade.find_body_points``), printed on stderr; one error line when the
+    box holds no body."""
+    import jax
+    import jax.numpy as jnp
+
+    from cpf_jax.cascade import find_body_points
+    from cpf_jax.points import AUTO_POINTS
+
+    xy, reach = jax.jit(find_body_points, static_argnums=0)(
+        config, frame, jnp.asarray(box, jnp.float32), background
+    )
+    xy, reach = np.asarray(xy), np.asarray(reach)
+    if not np.all(reach > 0):
+        raise UsageError(
+            f"--points auto: no body at the box's depth in frame {start}; give x,y;x,y;..."
+        )
+    found = "; ".join(f"{n} {x:.0f},{y:.0f}" for n, (x, y) in zip(AUTO_POINTS, xy, strict=True))
+    print(f"--points auto: {found} in frame {start}", file=sys.stderr)
+    return xy.astype(np.float32), AUTO_POINTS
 
 
 def _point_summary(source, names, pts2d, pts3d, done) -> str:

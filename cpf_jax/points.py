@@ -96,6 +96,8 @@ __all__ = [
     "PointState",
     "PointInfo",
     "body_model",
+    "body_extremities",
+    "AUTO_POINTS",
     "build_point_filter",
     "track_points",
 ]
@@ -108,6 +110,10 @@ BODY_POINTS = ("head", "left_hand", "right_hand", "left_foot", "right_foot")
 #: values for the head and feet.
 BODY_POINT_DEPTH_OFFSET_MM = (80.0, 20.0, 20.0, 40.0, 40.0)
 REFERENCES = ("head", "centroid")
+#: The points ``body_extremities`` finds (``cpf-track --points auto``): "a" is the one
+#: further left in the image, "b" the other (which of the person's hands is which
+#: depends on the way they face).
+AUTO_POINTS = ("head", "hand_a", "hand_b", "foot_a", "foot_b")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -377,6 +383,43 @@ def body_model(
     return BodyModel(
         win, rows, cols, d, body, pts, normals, body & nvalid, w, mres, ref_pix, geo, sweeps
     )
+
+
+def body_extremities(config: PointFilterConfig, bm: BodyModel) -> tuple[Array, Array]:
+    """Points to start tracking on a segmented body: ``AUTO_POINTS`` as frame positions
+    ``[5, 2]`` (box convention), and the geodesic reach ``[4]`` mm of the hands and feet.
+
+    The head is the centre of the head above the neck (``kernels.depth.head_neck_split``,
+    thesis 4.1.3). Hands and feet are the four geodesic extremities of the body's
+    surface graph seen from its centroid and its head (``kernels.graph.farthest_points``):
+    the two lowest in the image are the feet, the other two the hands; "a" is the one
+    further left. Meant for a person who faces the camera with the limbs apart from the
+    trunk (the thesis's initial pose). Side-on, a hand hidden by the body is not an
+    extremity, and another point (an elbow, a knee) takes its place: the reach of
+    such a point is small compared with the others'. With an empty body every point is
+    the window's corner and every reach 0.
+    """
+    body = bm.body
+    shape = body.shape
+    head = dk.head_neck_split(body).head_centre
+    n = jnp.maximum(jnp.sum(body), 1)
+    rr, cc = jnp.meshgrid(
+        jnp.arange(shape[0], dtype=jnp.float32),
+        jnp.arange(shape[1], dtype=jnp.float32),
+        indexing="ij",
+    )
+    centroid = jnp.stack([jnp.sum(jnp.where(body, rr, 0.0)), jnp.sum(jnp.where(body, cc, 0.0))]) / n
+    src, _ = dk.nearest_true(body, jnp.stack([head, centroid]))  # [2, 2] (row, col)
+    sources = jnp.zeros(shape, bool).at[src[:, 0], src[:, 1]].set(True) & body
+    ext, reach = gk.farthest_points(bm.weights, sources, 4, config.max_sweeps)
+    xy = _pixel_centre(bm, jnp.concatenate([src[:1], ext]))  # [5, 2]
+    limbs = xy[1:]
+    low = jnp.argsort(limbs[:, 1])  # ascending image y: hands first, then feet
+    hands, feet = low[:2], low[2:]
+    hands = hands[jnp.argsort(limbs[hands, 0])]
+    feet = feet[jnp.argsort(limbs[feet, 0])]
+    order = jnp.concatenate([hands, feet])
+    return jnp.concatenate([xy[:1], limbs[order]]), reach[order]
 
 
 def _component_sizes(labels: Array, valid: Array) -> Array:

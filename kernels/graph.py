@@ -75,6 +75,7 @@ __all__ = [
     "component_mean",
     "geodesic_distances",
     "geodesic_from_pixels",
+    "farthest_points",
     "edge_list",
 ]
 
@@ -339,3 +340,31 @@ def geodesic_from_pixels(weights: Array, pixels: Array, max_sweeps: int = 64) ->
         return geodesic_distances(weights, (rr == p[0]) & (cc == p[1]), max_sweeps)
 
     return jax.vmap(one)(pixels)
+
+
+def farthest_points(
+    weights: Array, sources: Array, k: int, max_sweeps: int = 64
+) -> tuple[Array, Array]:
+    """Greedy geodesic farthest-point search: ``k`` pixels ``[k, 2] int32 (row, col)``
+    and their distances ``[k]`` mm.
+
+    Pixel ``i`` is the one farthest (geodesically, over ``weights``) from the
+    ``sources`` (``[H, W] bool``) and pixels ``0..i-1``; only pixels reachable
+    from the sources count. On a body's surface graph, started from the torso
+    and the head, these are its extremities: hands and feet, then elbows and
+    knees (the AGEX interest points of Plagemann et al., ICRA 2010). The
+    distances fall as the search runs out of extremities; a distance of 0
+    means nothing reachable was left (the pixel is then a source, or (0, 0) when
+    no source is reachable at all). Ties go to the first pixel in row-major order.
+    """
+    weights = jnp.asarray(weights)
+    w = weights.shape[2]
+    d = geodesic_distances(weights, sources, max_sweeps)
+    pixels, dists = [], []
+    for _ in range(k):  # k is small and static: unrolled
+        score = jnp.where(jnp.isfinite(d), d, -1.0)
+        i = jnp.argmax(score)
+        pixels.append(jnp.stack([i // w, i % w]).astype(jnp.int32))
+        dists.append(jnp.maximum(score.reshape(-1)[i], 0.0))
+        d = jnp.minimum(d, geodesic_from_pixels(weights, pixels[-1][None], max_sweeps)[0])
+    return jnp.stack(pixels), jnp.stack(dists)

@@ -17,6 +17,7 @@ from cpf_jax.cascade import (
     build_cascade,
     check_points,
     default_cascade_params,
+    find_body_points,
     track_cascade,
 )
 from cpf_jax.cli import JOINT_DEPTH_OFFSET_MM, JOINTS, main
@@ -93,30 +94,32 @@ def test_layer2_works_in_layer1_box(grid_run):
     np.testing.assert_array_equal(used, est)
 
 
-def test_cascade_jit_equals_vmap(grid_run):
-    info, (filt, params, frames, box, pts, bg, keys) = grid_run
-    one = jax.jit(lambda k: track_cascade(filt, params, k, frames, box, pts, bg)[1])(keys[1])
+@pytest.fixture(scope="module")
+def one_run(grid_run):
+    """The grid cascade of ``grid_run`` for one key, jitted once for the tests below
+    (frames are an argument: same shapes, one compile)."""
+    _, (filt, params, _, box, pts, bg, _) = grid_run
+    return jax.jit(lambda k, frames: track_cascade(filt, params, k, frames, box, pts, bg)[1])
+
+
+def test_cascade_jit_equals_vmap(grid_run, one_run):
+    info, (_, _, frames, _, _, _, keys) = grid_run
+    one = one_run(keys[1], frames)
     np.testing.assert_allclose(one.box.estimate, info.box.estimate[1], rtol=1e-5, atol=1e-2)
     np.testing.assert_allclose(one.points.mean, info.points.mean[1], rtol=1e-5, atol=1e-2)
 
 
-def test_lost_box_keeps_layer2_on_last_box(walk):
+def test_lost_box_keeps_layer2_on_last_box(walk, one_run):
     """The walker vanishes (frames of the empty room): layer 1 votes the target hidden
     and reports lost; layer 2 keeps the last box it had, never a frame-wide search."""
-    seq, idx, bg = walk
-    config = _config(seq, n_box=100, n_points=32)
-    filt, params = build_cascade(config), _params(config)
+    seq, _, _ = walk
     colour = np.array(seq.colour)
     depth = np.array(seq.depth)
     gone = T // 2
     colour[gone:] = seq.meta["background_colour"]
     depth[gone:] = seq.meta["background_depth"]
     frames = Frame(jnp.asarray(colour), jnp.asarray(depth))
-    pts = jnp.asarray(seq.joints2d[0, idx] + 0.5)
-    run = jax.jit(
-        lambda k: track_cascade(filt, params, k, frames, jnp.asarray(seq.boxes[0]), pts, bg)
-    )
-    _, info = jax.device_get(run(jax.random.PRNGKey(3)))
+    info = jax.device_get(one_run(jax.random.PRNGKey(3), frames))
     lost = info.box.lost
     assert not lost[: gone - 1].any() and lost[gone - 1 :].sum() >= 3, lost
     used = info.box_used
@@ -177,6 +180,36 @@ def test_body_surface_is_the_walker_in_3d(walk):
     assert np.all((u > x - margin) & (u < x + w + margin) & (v > y - margin) & (v < y + h + margin))
     z = seq.joints3d[t][:, 2]
     assert np.all((body[:, 2] > z.min() - 400) & (body[:, 2] < z.max() + 400))
+
+
+def test_find_body_points_are_the_head_hands_and_feet(walk):
+    """On a walker facing the camera the points found are his head, hands and feet
+    (hands and feet ordered left to right in the image); under jit and vmap over
+    frames; an empty box gives zero reach (``cpf-track --points auto`` refuses it)."""
+    seq, idx, bg = walk
+    config = dataclasses.replace(_config(seq), foreground=True)
+    find = jax.jit(jax.vmap(find_body_points, in_axes=(None, 0, 0, None)), static_argnums=0)
+    ts = np.array([0, T // 2, T - 1])
+    frames = Frame(jnp.asarray(seq.colour[ts]), jnp.asarray(seq.depth[ts]))
+    xy, reach = (np.asarray(a) for a in find(config, frames, jnp.asarray(seq.boxes[ts]), bg))
+    for b, t in enumerate(ts):
+        gt = seq.joints2d[t, idx] + 0.5  # head, left/right hand, left/right foot
+        for a in (1, 3):  # the person's left is on the image's right
+            gt[a : a + 2] = gt[a : a + 2][np.argsort(gt[a : a + 2, 0])]
+        err = np.linalg.norm(xy[b] - gt, axis=1) / seq.boxes[t, 3]
+        # Measured: head 0.01, hands 0.04 (a fingertip, not the hand's centre), feet
+        # 0.02-0.11 of the box height (the toe of a foot in mid-stride, not the ankle).
+        assert err[0] < 0.03 and np.all(err[1:3] < 0.08) and np.all(err[3:] < 0.15), (t, err)
+        assert np.all(reach[b] > 500.0)  # mm along the body: real limbs
+    one = jax.jit(find_body_points, static_argnums=0)
+    t = ts[1]
+    xy1, _ = one(config, Frame(frames.colour[1], frames.depth[1]), jnp.asarray(seq.boxes[t]), bg)
+    np.testing.assert_allclose(xy1, xy[1], atol=1e-4)
+    empty = Frame(
+        jnp.asarray(seq.meta["background_colour"]), jnp.asarray(seq.meta["background_depth"])
+    )
+    _, reach = one(config, empty, jnp.asarray(seq.boxes[t]), bg)
+    np.testing.assert_array_equal(np.asarray(reach), 0.0)
 
 
 @pytest.mark.parametrize(
@@ -248,6 +281,23 @@ def test_cli_points_writes_joints_and_errors(tmp_path, capsys):
     paths = {str(ch.entity_path) for ch in RrdReader(str(rrd)).stream()}
     assert any("body/points3d" in p for p in paths) and any("body/points" in p for p in paths)
     assert any("body/surface" in p for p in paths)
+
+    # --points auto: the same cascade on points found in the start box.
+    auto = tmp_path / "auto.csv"
+    argv = ["walk_towards", "--points", "auto", "--model", "rgbd", "--background", "empty"]
+    argv += ["--particles", "64", "--point-particles", "32", "--max-frames", "3"]
+    assert main([*argv, "--out", str(auto), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "--points auto: head " in err and "foot_b" in err
+    rows = list(csv.DictReader(open(auto)))
+    assert len(rows) == 3 and "hand_a_x" in rows[0]
+    seq = make_sequence("walk_towards", seed=0, n_frames=1)
+    head = np.array([float(rows[0]["head_x"]), float(rows[0]["head_y"])])
+    assert np.linalg.norm(head - seq.joints2d[0, seq.joint_names.index("head")] - 0.5) < 5.0
+    # A box on the empty room has no body to find points on.
+    bad = ["--init", "20,20,60,150", "--max-frames", "2"]
+    assert main([*argv, *bad, "--no-progress"]) == 2
+    assert "--points auto: no body" in capsys.readouterr().err
 
 
 def test_cli_points_joints_needs_a_synthetic_scenario(tmp_path, capsys):

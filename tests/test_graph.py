@@ -296,3 +296,61 @@ def test_geodesic_random_graphs(seed, density):
     src[r, c] = True
     d, _ = _geo(w, src)
     _check_equal(d, _dijkstra(w, r * 20 + c))
+
+
+def _farthest_reference(weights, sources: np.ndarray, k: int):
+    """The greedy farthest-point search with SciPy's Dijkstra: the distances of the
+    chosen pixels, and per step the set of pixels tied at the maximum."""
+    w = np.asarray(weights).shape[2]
+    chosen = list(np.flatnonzero(sources.ravel()))
+    dists, ties = [], []
+    for _ in range(k):
+        d = np.min(np.atleast_2d(_dijkstra(weights, chosen)), axis=0)
+        score = np.where(np.isfinite(d), d, -1.0)
+        best = score.max()
+        dists.append(best)
+        ties.append(set(np.flatnonzero(score >= best - 1e-3 * max(best, 1.0))))
+        chosen.append(int(np.argmax(score)))
+    return np.array(dists), ties, w
+
+
+_far = jax.jit(gk.farthest_points, static_argnums=(2,))
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_farthest_points_equal_a_dijkstra_search_and_find_the_limbs(seed):
+    z, p = render_figure(96, 64, seed=seed, arm=1.2)
+    w = gk.surface_graph(p, z > 0, 15.0)
+    src = np.zeros(z.shape, bool)
+    src[12, 32] = src[50, 32] = True  # head and pelvis
+    pix, dist = (np.asarray(a) for a in _far(w, src, 5))
+    ref_d, ties, width = _farthest_reference(w, src, 5)
+    np.testing.assert_allclose(dist, ref_d, rtol=1e-4)
+    for k in range(5):
+        assert pix[k, 0] * width + pix[k, 1] in ties[k], (k, pix[k])
+    # The first four are the hands and feet: each the nearest of them to one limb end
+    # (the raised hand leaves the window: its end is clipped to the window's edge).
+    joints = [figure_joints(1.2)[n] for n in ("lh", "rh", "lf", "rf")]
+    ends = np.array([[47.5 + FY * 0.33 * y / 2000, 31.5 + FX * 0.33 * x / 2000] for x, y in joints])
+    ends = np.clip(ends, 0, [95, 63])
+    near = np.argmin(np.linalg.norm(pix[:4, None] - ends[None], axis=-1), axis=1)
+    assert sorted(near) == [0, 1, 2, 3], (pix, ends)
+    assert np.all(np.linalg.norm(pix[:4] - ends[near], axis=-1) < 8)
+    assert np.all(np.diff(dist) <= 0) and dist[4] < 0.8 * dist[3]  # then the reach falls
+
+
+def test_farthest_points_vmap_and_nothing_reachable():
+    figs = [render_figure(96, 64, seed=s, arm=a)[1] for s, a in ((1, 0.4), (2, 1.2))]
+    ws = np.stack([np.asarray(gk.surface_graph(p, p[..., 2] > 0, 15.0)) for p in figs])
+    src = np.zeros((96, 64), bool)
+    src[12, 32] = True
+    pix, dist = jax.vmap(lambda w: gk.farthest_points(w, src, 3))(ws)
+    for b in range(2):
+        one_p, one_d = _far(ws[b], src, 3)
+        np.testing.assert_array_equal(pix[b], one_p)
+        np.testing.assert_allclose(dist[b], one_d, rtol=1e-6)
+    off = np.zeros((96, 64), bool)
+    off[0, 0] = True  # a source off the body, with no edges
+    pix, dist = _far(ws[0], off, 2)
+    np.testing.assert_array_equal(np.asarray(pix), [[0, 0], [0, 0]])
+    np.testing.assert_array_equal(np.asarray(dist), [0.0, 0.0])
