@@ -7,6 +7,7 @@ the cache turns their repeated XLA compiles into look-ups.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import jax
@@ -16,7 +17,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
 
-jax.config.update("jax_compilation_cache_dir", str(ROOT / ".pytest_cache" / "jax"))
+# One cache per pytest-xdist worker: the cache writes its files without a lock, and a
+# worker could read an entry another is still writing.
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "main")
+jax.config.update("jax_compilation_cache_dir", str(ROOT / ".pytest_cache" / "jax" / _WORKER))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
