@@ -19,4 +19,7 @@ def test_notebook_runs(path, monkeypatch):
     assert "summary" in ns or "result" in ns
     if "summary" in ns:
         assert 0.0 <= ns["summary"]["success_rate"] <= 100.0
+    if "point_errors_mm" in ns.get("summary", {}):  # body_points.py; measured 15-64 mm
+        assert ns["summary"]["success_rate"] >= 90.0
+        assert all(e < 120.0 for e in ns["summary"]["point_errors_mm"].values())
     assert os.environ["CPF_NOTEBOOK_FRAMES"] == "16"
