@@ -48,8 +48,9 @@ frames = Frame(jnp.asarray(seq.colour), jnp.asarray(seq.depth))
 config = ColourConfig(n_particles=100).with_window(seq.boxes[0, 2:], seq.colour.shape[1:3])
 filt = build_colour_filter(config)
 params = default_colour_params()
-run = jax.jit(lambda key: track_boxes(filt, params, key, frames, seq.boxes[0]))
-boxes = np.asarray(run(jax.random.PRNGKey(0)))
+# Arrays go in as arguments: closed over, they would be baked into the program as constants.
+run = jax.jit(lambda key, frames, box: track_boxes(filt, params, key, frames, box))
+boxes = np.asarray(run(jax.random.PRNGKey(0), frames, seq.boxes[0]))
 summary = summarise(boxes, seq.boxes, seq.visible)
 print(format_summary({"walk_across_medium": summary}))
 
