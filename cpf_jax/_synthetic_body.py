@@ -1,8 +1,11 @@
 """Walking articulated figure and walking paths for the synthetic generator (private).
 
 World frame (metres): ``x`` right, ``y`` up, ``z`` forward away from the camera, floor at
-``y = 0``. The person's body frame: ``f`` forward (horizontal heading), ``u`` up, ``l =
-u x f`` the person's anatomical left. Gait is a sinusoidal approximation of normal walking
+``y = 0``; a left-handed frame. The person's body frame: ``f`` forward (horizontal heading),
+``u`` up, ``l = u x f`` lateral, which in this left-handed frame points to the person's
+anatomical *right* (facing the camera, ``f = -z`` gives ``l = -x``, the image's left, where
+the camera sees the person's right hand). The limbs on the ``+l`` side are the ``right_*``
+ones. Gait is a sinusoidal approximation of normal walking
 kinematics: hip flexion ``A sin(phase)``, knee flexion peaking in early swing, arms in
 antiphase with the legs, forward trunk lean growing with speed; pelvis height is set so that
 the lower foot touches the floor, which produces the vertical bob (about 2-5 cm) and lateral
@@ -41,6 +44,8 @@ JOINT_NAMES: tuple[str, ...] = (
 J = {name: i for i, name in enumerate(JOINT_NAMES)}
 
 # Body parts (primitives) and the clothing slot that colours them.
+# (The right side's parts come first: their indices seed the textures, and the side they
+# were first given to is the person's right; see the module docstring.)
 PART_NAMES: tuple[str, ...] = (
     "face",
     "hair",
@@ -49,18 +54,18 @@ PART_NAMES: tuple[str, ...] = (
     "shoulders",
     "abdomen",
     "hips",
-    "left_upper_arm",
-    "left_forearm",
-    "left_hand",
     "right_upper_arm",
     "right_forearm",
     "right_hand",
-    "left_thigh",
-    "left_shin",
-    "left_foot",
+    "left_upper_arm",
+    "left_forearm",
+    "left_hand",
     "right_thigh",
     "right_shin",
     "right_foot",
+    "left_thigh",
+    "left_shin",
+    "left_foot",
 )
 P = {name: i for i, name in enumerate(PART_NAMES)}
 
@@ -101,9 +106,9 @@ FOOT_FWD, FOOT_DOWN = 0.055, 0.04
 class Pose(NamedTuple):
     joints: np.ndarray  # [J, 3] world metres
     f: np.ndarray  # [3] forward
-    l: np.ndarray  # [3] left
+    l: np.ndarray  # [3] lateral: the person's right (module docstring)
     trunk_up: np.ndarray  # [3]
-    ua_dir: np.ndarray  # [2, 3] upper-arm directions (left, right)
+    ua_dir: np.ndarray  # [2, 3] upper-arm directions (right, left): side 0 is on +l
     fa_dir: np.ndarray  # [2, 3] forearm directions
     foot_fwd: np.ndarray  # [2, 3]
     foot_up: np.ndarray  # [2, 3]
@@ -137,7 +142,7 @@ def body_pose(
     """Joints of the walking figure at one instant.
 
     root_xz: ``[2]`` ground point under the pelvis (x, z) in metres; heading_xz: ``[2]``
-    walking direction; phase: gait phase (rad), the left thigh is ``A sin(phase)`` forward.
+    walking direction; phase: gait phase (rad), the right thigh is ``A sin(phase)`` forward.
     """
     g = gait_parameters(speed)
     k = height / 1.75
@@ -180,7 +185,7 @@ def body_pose(
 
     ua_dirs, fa_dirs, ffwd, fup = [], [], [], []
     for side, sgn in ((0, 1.0), (1, -1.0)):
-        name = "left" if side == 0 else "right"
+        name = "right" if side == 0 else "left"  # +l is the anatomical right (docstring)
         hip = pelvis + sgn * l * HIP_HALF * k
         kn = hip + th * (np.sin(alpha[side]) * f - np.cos(alpha[side]) * u)
         an = kn + sh * (np.sin(beta[side]) * f - np.cos(beta[side]) * u)
@@ -246,8 +251,8 @@ def body_parts(pose: Pose, height: float = 1.75) -> list[tuple]:
     )
     parts[P["shoulders"]] = (
         "capsule",
+        jt[J["right_shoulder"]],  # from the +l side (textures run along the capsule)
         jt[J["left_shoulder"]],
-        jt[J["right_shoulder"]],
         0.06 * k,
         f,
     )
@@ -263,7 +268,7 @@ def body_parts(pose: Pose, height: float = 1.75) -> list[tuple]:
         body_axes,
         np.array([0.16, 0.12, 0.105]) * k,
     )
-    for side, name in ((0, "left"), (1, "right")):
+    for side, name in ((0, "right"), (1, "left")):  # side 0 is on +l (Pose)
         sho, el, hand = jt[J[f"{name}_shoulder"]], jt[J[f"{name}_elbow"]], jt[J[f"{name}_hand"]]
         wr = hand - pose.fa_dir[side] * HAND_OFF * k
         parts[P[f"{name}_upper_arm"]] = ("capsule", sho, el, 0.045 * k, f)

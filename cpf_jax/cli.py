@@ -17,8 +17,9 @@ on the body in the start box, :func:`cpf_jax.cascade.find_body_points`, which
 pairs with ``--init auto``; or ``x,y;x,y;...`` pixels of the start frame) tracked
 in depth inside every layer-1 box. The CSV gains
 ``<point>_x, <point>_y`` (pixels) and ``<point>_X_mm, _Y_mm, _Z_mm`` (camera
-millimetres) columns, the Rerun log the 2D and 3D points, and with ``joints``
-the summary gives each point's median 2D and 3D error.
+millimetres) columns, the Rerun log the 2D and 3D points, and on a synthetic
+scenario (``joints``, or ``auto``: each point against the joint it stands for) the
+summary gives each point's median 2D and 3D error.
 
 Live sources (``realsense[:serial]``, ``kinect2[:serial]``, a RealSense ``.bag``/``.db3``) are
 read once, in order: ``--init`` is required (a box, or ``auto``: the first frame where
@@ -566,8 +567,17 @@ def _track(args: argparse.Namespace, source) -> int:
         vis = None if source.visible is None else np.asarray(source.visible)[idx]
         summary = summarise(np.stack(pred), source.gt_boxes[idx], vis, np.asarray(lost))
         print(format_summary({Path(str(args.path)).name or str(args.path): summary}))
-    if cascade is not None and args.points == "joints" and idx.size:
-        print(_point_summary(source, point_names, np.stack(pts2d), np.stack(pts3d), idx))
+    if cascade is not None and idx.size:
+        joints = None
+        if args.points == "joints":
+            joints = point_names
+        elif args.points == "auto":
+            joints = _auto_joints(source, idx[0])
+        if joints is not None:
+            table = _point_summary(
+                source, point_names, np.stack(pts2d), np.stack(pts3d), idx, joints
+            )
+            print(table)
     if args.out:
         print(f"boxes written to {args.out}")
     if args.rrd:
@@ -761,25 +771,41 @@ def _auto_points(config, frame, box, background, start: int):
     return xy.astype(np.float32), AUTO_POINTS
 
 
-def _point_summary(source, names, pts2d, pts3d, done) -> str:
-    """Median 2D / 3D errors of ``--points joints`` over the tracked frames ``done`` (in
-    order; ``pts2d [T, P, 2]``, ``pts3d [T, P, 3]`` of those frames) where the target is
-    visible."""
+def _auto_joints(source, start: int) -> tuple[str, ...] | None:
+    """The synthetic joints ``--points auto``'s points stand for (``AUTO_POINTS`` order:
+    "a" is the joint further left in the image at ``start``), or None without joints."""
+    seq = getattr(source, "sequence", None)
+    names = list(getattr(seq, "joint_names", ()))
+    if not all(n in names for n in JOINTS):
+        return None
+    u = seq.joints2d[start, :, 0]
+    out = ["head"]
+    for part in ("hand", "foot"):
+        left, right = f"left_{part}", f"right_{part}"
+        pair = (left, right) if u[names.index(left)] <= u[names.index(right)] else (right, left)
+        out.extend(pair)
+    return tuple(out)
+
+
+def _point_summary(source, names, pts2d, pts3d, done, joints) -> str:
+    """Median 2D / 3D errors of the points ``names`` against the synthetic ``joints``
+    over the tracked frames ``done`` (in order; ``pts2d [T, P, 2]``, ``pts3d [T, P, 3]`` of
+    those frames) where the target is visible."""
     seq = source.sequence
-    idx = [list(seq.joint_names).index(n) for n in names]
+    idx = [list(seq.joint_names).index(n) for n in joints]
     sel = np.ones(len(done), bool)
     sel[0] = False  # the initial frame has no 3D estimate
     if source.visible is not None:
         sel &= np.asarray(source.visible, bool)[done]
     frames = done[sel]
-    lines = ["| point | median 2D error px | median 3D error mm |", "|---|---:|---:|"]
+    lines = ["| point | joint | median 2D error px | median 3D error mm |", "|---|---|---:|---:|"]
     for k, name in enumerate(names):
         e2 = np.linalg.norm(pts2d[sel, k] - (seq.joints2d[frames][:, idx[k]] + 0.5), axis=-1)
         e3 = np.linalg.norm(pts3d[sel, k] - seq.joints3d[frames][:, idx[k]], axis=-1)
         e3 = np.where(np.isfinite(e3), e3, np.inf)  # no 3D estimate counts as lost
         med2 = float(np.median(e2)) if e2.size else float("nan")
         med3 = float(np.median(e3)) if e3.size else float("nan")
-        lines.append(f"| {name} | {med2:.1f} | {med3:.1f} |")
+        lines.append(f"| {name} | {joints[k]} | {med2:.1f} | {med3:.1f} |")
     return "\n".join(lines)
 
 

@@ -32,7 +32,8 @@ Ground truth
   the body): ``head`` is the centre of the head, ``head_top`` the top of the hair,
   ``torso`` the trunk centroid (the thesis's body-centroid reference point),
   ``left_hand`` / ``right_hand`` the hand centres, ``left_foot`` / ``right_foot`` the shoe
-  centres; ``left`` is the person's anatomical left.
+  centres; ``left`` is the person's anatomical left (facing the camera, the left hand is
+  on the image's right).
 * ``meta``: the spec, the camera pose, ``up`` (world up in camera coordinates),
   ``joint_visible [T, J]`` (the joint's own body part is the nearest surface at its
   pixel), ``visible_fraction`` and ``occlusion`` (0 none, 1 partial, 2 full) per frame,

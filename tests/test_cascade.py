@@ -287,8 +287,14 @@ def test_cli_points_writes_joints_and_errors(tmp_path, capsys):
     argv = ["walk_towards", "--points", "auto", "--model", "rgbd", "--background", "empty"]
     argv += ["--particles", "64", "--point-particles", "32", "--max-frames", "3"]
     assert main([*argv, "--out", str(auto), "--no-progress"]) == 0
-    err = capsys.readouterr().err
-    assert "--points auto: head " in err and "foot_b" in err
+    captured = capsys.readouterr()
+    assert "--points auto: head " in captured.err and "foot_b" in captured.err
+    # Scored against the joints the points stand for: walking towards the camera, his
+    # right hand is "a" (image left).
+    table = [r for r in captured.out.splitlines() if r.startswith("| hand_a")]
+    assert table and table[0].startswith("| hand_a | right_hand |"), captured.out
+    med3 = [float(r.split("|")[4]) for r in captured.out.splitlines() if r.startswith("| head")]
+    assert med3 and med3[0] < 60.0, captured.out  # mm; measured 19
     rows = list(csv.DictReader(open(auto)))
     assert len(rows) == 3 and "hand_a_x" in rows[0]
     seq = make_sequence("walk_towards", seed=0, n_frames=1)

@@ -270,6 +270,18 @@ def test_walk_towards_grows_and_walk_away_shrinks_the_box():
     assert np.corrcoef(np.arange(len(ha)), ha)[0, 1] < -0.95
 
 
+@pytest.mark.parametrize("name, sign", [("walk_towards", 1.0), ("walk_away", -1.0)])
+def test_left_is_the_persons_anatomical_left(name, sign):
+    # Facing the camera a person's left shoulder, hip, hand and foot are on the image's
+    # right; seen from behind, on its left. (The generator's world frame is left-handed:
+    # u x f points to the person's right, and its limbs were once named the other way.)
+    s = make_sequence(name, seed=0, n_frames=10)
+    u = s.joints2d[..., 0]
+    for part in ("shoulder", "hip", "hand", "foot"):
+        d = sign * (u[:, _j(s, f"left_{part}")] - u[:, _j(s, f"right_{part}")])
+        assert np.all(d > 0) if part in ("shoulder", "hip") else np.median(d) > 0, (part, d)
+
+
 def test_gait_limbs_swing_in_antiphase():
     s = make_sequence("walk_across_medium", n_frames=60, fps=30.0)
     world = _to_world_mm(s, s.joints3d.astype(np.float64))
