@@ -113,7 +113,7 @@ print(format_summary({"walk_towards (layer 1)": summary}))
 # facing the camera, the person's left hand is on the image's right. The hand points start
 # at the fingertips (the extremities), a few centimetres from the hand joints the sequence
 # records, so their errors include that offset (started on the joints' own pixels, the
-# same walk gives about 27 mm: tests/test_cascade.py).
+# same walk gives about 29 mm: tests/test_cascade.py).
 
 # %%
 names = list(seq.joint_names)
