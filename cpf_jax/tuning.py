@@ -106,6 +106,7 @@ class TuningData(NamedTuple):
 class TuneResult(NamedTuple):
     params: Any  # the tuned parameters (the last finite step, or the best on validation)
     history: list  # one dict per step: step, loss, skipped, seconds, and each tuned value
+    start_validation: float | None = None  # validation loss of the starting parameters
 
 
 def stack_sequences(sequences: Sequence, backgrounds: Sequence | None = None) -> TuningData:
@@ -339,7 +340,8 @@ def tune(
     if validation is not None:
         val_key = jax.random.fold_in(key, 1)
         val_loss = jax.jit(lambda v, params, data: scaled_loss(v, params, val_key, data))
-        best = (float(val_loss(free, params, validation)), free)
+        start_validation = float(val_loss(free, params, validation))
+        best = (start_validation, free)
     history = []
     for step in range(steps):
         t0 = time.perf_counter()
@@ -361,6 +363,8 @@ def tune(
         history.append(entry)
         if callback is not None:
             callback(entry)
+    start = None
     if validation is not None:
+        start = start_validation
         free = best[1]
-    return TuneResult(to_params(unscale(free), params, constraints), history)
+    return TuneResult(to_params(unscale(free), params, constraints), history, start)

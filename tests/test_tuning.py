@@ -242,6 +242,7 @@ def test_tune_with_validation_returns_the_best_validated_parameters(walk):
     loss = tuning.make_loss(run, PARAM_CONSTRAINTS)
     free0 = tuning.to_unconstrained(start, PARAM_CONSTRAINTS, ("sigma",))
     v0 = float(jax.jit(loss)(free0, start, jax.random.fold_in(key, 1), val))
+    assert result.start_validation == pytest.approx(v0, rel=1e-5)
     candidates = [(v0, float(start.sigma))] + [(e["validation"], e["sigma"]) for e in checked]
     best_sigma = min(candidates)[1]
     assert float(result.params.sigma) == pytest.approx(best_sigma, rel=1e-5)
