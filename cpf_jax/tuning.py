@@ -71,6 +71,7 @@ __all__ = [
     "rgbd_runner",
     "make_loss",
     "tune",
+    "progress",
 ]
 
 
@@ -368,3 +369,16 @@ def tune(
         start = start_validation
         free = best[1]
     return TuneResult(to_params(unscale(free), params, constraints), history, start)
+
+
+def progress(label: str, names: Sequence[str]) -> Callable[[dict], None]:
+    """A ``tune(callback=...)`` that prints each step: its loss, the tuned values (the
+    mean of a vector) and, when computed, the validation loss."""
+
+    def show(entry: dict) -> None:
+        vals = " ".join(f"{n} {float(np.mean(entry[n])):.3f}" for n in names)
+        val = f" validation {entry['validation']:.4f}" if "validation" in entry else ""
+        step, loss = entry["step"], entry["loss"]
+        print(f"{label} step {step:3d} loss {loss:.4f} {vals}{val}", flush=True)
+
+    return show

@@ -107,11 +107,6 @@ def main() -> None:
     for label, p0 in starts.items():
         t0 = time.perf_counter()
 
-        def show(e, label=label):
-            vals = " ".join(f"{n} {e[n]:.3f}" for n in NAMES)
-            val = f" validation {e['validation']:.4f}" if "validation" in e else ""
-            print(f"{label} step {e['step']:3d} loss {e['loss']:.4f} {vals}{val}", flush=True)
-
         result = tuning.tune(
             run,
             p0,
@@ -121,7 +116,7 @@ def main() -> None:
             optimizer=optax.adam(args.lr),
             steps=steps,
             key=jax.random.PRNGKey(0),
-            callback=show,
+            callback=tuning.progress(label, NAMES),
             validation=validation,
             validate_every=5,
         )

@@ -193,11 +193,6 @@ def main() -> None:
     for label, names in SETTINGS.items():
         t0 = time.perf_counter()
 
-        def show(e, names=names, label=label):
-            vals = " ".join(f"{n} {float(np.mean(e[n])):.3f}" for n in names)
-            val = f" validation {e['validation']:.4f}" if "validation" in e else ""
-            print(f"{label} step {e['step']:3d} loss {e['loss']:.4f} {vals}{val}", flush=True)
-
         result = tuning.tune(
             run,
             p0,
@@ -207,7 +202,7 @@ def main() -> None:
             optimizer=optax.adam(args.lr),
             steps=steps,
             key=jax.random.PRNGKey(0),
-            callback=show,
+            callback=tuning.progress(label, names),
             validation=validation,
             validate_every=5,
         )

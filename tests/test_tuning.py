@@ -247,3 +247,12 @@ def test_tune_with_validation_returns_the_best_validated_parameters(walk):
     best_sigma = min(candidates)[1]
     assert float(result.params.sigma) == pytest.approx(best_sigma, rel=1e-5)
     assert min(candidates)[0] < v0  # the check can fail: tuning helped on validation
+
+
+def test_progress_prints_each_step(capsys):
+    show = tuning.progress("run", ("sigma", "beta_a"))
+    show({"step": 3, "loss": 0.25, "sigma": 0.125, "beta_a": [1.0, 3.0], "skipped": False})
+    show({"step": 4, "loss": 0.2, "sigma": 0.1, "beta_a": [2.0, 2.0], "validation": 0.3})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "run step   3 loss 0.2500 sigma 0.125 beta_a 2.000"
+    assert lines[1].endswith("validation 0.3000")
