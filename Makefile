@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench experiments clean
+.PHONY: demo test lint bench experiments figures clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +30,13 @@ bench: $(STAMP)
 experiments: $(STAMP)
 	$(BIN)/python experiments/colour_tables.py
 	$(BIN)/python experiments/tune_colour.py
+
+# Redraw the figures kept as data in experiments/results/*.json (no re-run).
+figures: $(STAMP)
+	$(BIN)/python experiments/colour_tables.py --figure-only
+	$(BIN)/python experiments/bench_colour.py --figure-only
+	$(BIN)/python experiments/tune_colour.py --figure-only
+	$(BIN)/python experiments/tune_rgbd.py --figure-only
 
 clean:
 	rm -rf $(VENV) build *.egg-info demo.rrd demo_boxes.csv

@@ -8,8 +8,9 @@ from live in ``cpf_jax.kernels``. Frame
 sources and results files are in ``cpf_jax.io``, metrics in
 ``cpf_jax.metrics``, Rerun logging in ``cpf_jax.viz``, synthetic RGB-D
 sequences with ground truth in ``cpf_jax.synthetic``, batch runs over devices in
-``cpf_jax.batch`` and gradient tuning of the filters' parameters with optax in
-``cpf_jax.tuning``.
+``cpf_jax.batch``, gradient tuning of the filters' parameters with optax in
+``cpf_jax.tuning``, and success plots and other line charts (OpenCV, no plotting
+library) in ``cpf_jax.charts``.
 
 Importing the package changes no global JAX configuration.
 """

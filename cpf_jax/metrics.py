@@ -52,6 +52,7 @@ __all__ = [
     "point_errors",
     "point_error_summary",
     "summarise",
+    "run_success_curve",
     "format_summary",
 ]
 
@@ -282,6 +283,32 @@ def summarise(
     Raises:
       ValueError: when there are no frames, or shapes do not match.
     """
+    pred, gt, vis_in, lost_in = _run_inputs(pred_boxes, gt_boxes, visible, lost)
+    out = _box_scores(pred, gt, vis_in, lost_in, iou_threshold, precision_px)
+    counts = ("frames", "visible", "matches", "misses", "false_positives", "mismatches")
+    return {k: int(v) if k in counts else float(v) for k, v in out.items()}
+
+
+def run_success_curve(
+    pred_boxes: Array,
+    gt_boxes: Array,
+    visible: Array | None = None,
+    lost: Array | None = None,
+) -> np.ndarray:
+    """``[21]`` OTB success plot of one run (fraction of visible frames with ``IoU > t``,
+    ``t`` in :data:`OTB_THRESHOLDS`), by the rules of :func:`summarise`: a lost or empty
+    box scores IoU 0, frames without a ground-truth box are left out. Its mean x 100 is
+    ``summarise(...)["auc"]``.
+
+    Raises:
+      ValueError: as :func:`summarise`.
+    """
+    pred, gt, vis_in, lost_in = _run_inputs(pred_boxes, gt_boxes, visible, lost)
+    ious, vis, _ = _run_ious(pred, gt, vis_in, lost_in)
+    return np.asarray(success_curve(ious, vis), np.float64)
+
+
+def _run_inputs(pred_boxes, gt_boxes, visible, lost) -> tuple[np.ndarray, ...]:
     pred = np.asarray(pred_boxes, np.float32)
     gt = np.asarray(gt_boxes, np.float32)
     if pred.ndim != 2 or pred.shape[-1] != 4 or gt.shape != pred.shape:
@@ -295,9 +322,14 @@ def summarise(
             raise ValueError(f"{name} must have shape ({pred.shape[0]},), got {np.shape(flags)}")
     vis_in = np.ones(pred.shape[0], bool) if visible is None else np.asarray(visible, bool)
     lost_in = np.zeros(pred.shape[0], bool) if lost is None else np.asarray(lost, bool)
-    out = _box_scores(pred, gt, vis_in, lost_in, iou_threshold, precision_px)
-    counts = ("frames", "visible", "matches", "misses", "false_positives", "mismatches")
-    return {k: int(v) if k in counts else float(v) for k, v in out.items()}
+    return pred, gt, vis_in, lost_in
+
+
+def _run_ious(pred: Array, gt: Array, visible: Array, lost: Array) -> tuple[Array, ...]:
+    """Per-frame IoU (0 without a box), frames that count (GT visible), frames with a box."""
+    vis = gt_visible(gt, visible)
+    has_box = box_present(pred) & ~lost
+    return jnp.where(has_box, frame_ious(pred, gt), 0.0), vis, has_box
 
 
 @jax.jit
@@ -305,9 +337,7 @@ def _box_scores(
     pred: Array, gt: Array, visible: Array, lost: Array, iou_threshold: Array, precision_px: Array
 ) -> dict[str, Array]:
     # One compiled program per sequence length: the CLI and tests call this often.
-    vis = gt_visible(gt, visible)
-    has_box = box_present(pred) & ~lost
-    ious = jnp.where(has_box, frame_ious(pred, gt), 0.0)
+    ious, vis, has_box = _run_ious(pred, gt, visible, lost)
     err = centre_errors(pred, gt)
     err_or_inf = jnp.where(has_box, err, jnp.inf)
     mot = clear_mot(pred, gt, vis, ~has_box, match_iou=iou_threshold)

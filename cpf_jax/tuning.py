@@ -47,7 +47,7 @@ records it), so a tuning run never ends on NaN parameters.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import jax
@@ -56,6 +56,7 @@ import numpy as np
 import optax
 from jax import Array
 
+from cpf_jax import charts
 from cpf_jax.kernels import boxes as box_ops
 from cpf_jax.types import Frame
 
@@ -72,6 +73,7 @@ __all__ = [
     "make_loss",
     "tune",
     "progress",
+    "history_chart",
 ]
 
 
@@ -382,3 +384,17 @@ def progress(label: str, names: Sequence[str]) -> Callable[[dict], None]:
         print(f"{label} step {step:3d} loss {loss:.4f} {vals}{val}", flush=True)
 
     return show
+
+
+def history_chart(runs: Mapping[str, Sequence[dict]], title: str = "") -> np.ndarray:
+    """Loss curves of tuning runs, ``{label: TuneResult.history}`` -> a BGR image
+    (``cpf_jax.charts``): the training loss of every step, and the validation loss where
+    it was computed (points joined across the steps without one)."""
+    series = {}
+    for label, history in runs.items():
+        steps = [e["step"] for e in history]
+        series[f"{label}: training loss"] = (steps, [e["loss"] for e in history])
+        val = [(e["step"], e["validation"]) for e in history if "validation" in e]
+        if val:
+            series[f"{label}: validation loss"] = ([v[0] for v in val], [v[1] for v in val])
+    return charts.line_chart(series, title=title, xlabel="optax step", ylabel="loss")

@@ -3,6 +3,10 @@
     python experiments/bench_colour.py           # full run -> results/bench_colour.{json,md}
     python experiments/bench_colour.py --quick   # few repeats, no table 3.2 (smoke test)
     python experiments/bench_colour.py --no-tune-malloc
+    python experiments/bench_colour.py --figure-only  # redraw results/bench_colour.png
+
+The figure (``bench_colour.png``) shows frames/s against N for the step's variants and
+the OpenCV loop, and the thesis's Table 3.2 grid (frames/s per box size against N).
 
 "Colour step" = one jitted ``step`` of the library's colour filter
 (``cpf_jax.colour.build_colour_filter``) on a 512 x 424 frame: bins of the
@@ -60,6 +64,11 @@ def _parse_args(argv=None):
     )
     p.add_argument(
         "--out", default=None, help="results path stem (default experiments/results/bench_colour)"
+    )
+    p.add_argument(
+        "--figure-only",
+        action="store_true",
+        help="redraw the figure from the results JSON (no timing)",
     )
     p.add_argument(
         "--stat",
@@ -537,8 +546,57 @@ def main(args) -> dict:
         stem.parent.mkdir(parents=True, exist_ok=True)
         stem.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
         stem.with_suffix(".md").write_text(md)
+        figure(results, stem.with_suffix(".png"))
     return results
 
 
+def figure(results: dict, path: Path) -> None:
+    """Frames/s vs N of each step variant and the OpenCV loop; the Table 3.2 grid."""
+    from cpf_jax import charts
+
+    ns = [int(k) for k in results if k.isdigit()]
+    variants = {
+        "ours (default)": "ms_per_frame",
+        "thesis model": "thesis_model_ms_per_frame",
+        "with layout 12x3": "layout_ms_per_frame",
+        "with gradient layout 12x3": "gradient_layout_ms_per_frame",
+        "OpenCV calcHist + compareHist loop": "baseline_ms_per_frame",
+    }
+    series = {}
+    for label, key in variants.items():
+        ms = [results[str(n)].get(key) for n in ns]
+        if any(v is not None for v in ms):
+            series[label] = (ns, [1000.0 / v if v else float("nan") for v in ms])
+    panels = [
+        charts.line_chart(
+            series,
+            title=f"One colour step, {results['meta']['frame']} frame, "
+            f"box {results['meta']['box']} ({results['meta']['cores']} cores)",
+            xlabel="particles N (OpenCV loop scaled linearly above N = 10,000)",
+            ylabel="frames/s",
+            log_x=True,
+            ylim=(0.0, 1.1 * max(max(v for v in y if v == v) for _, y in series.values())),
+        )
+    ]
+    table = results.get("table_3_2")
+    if table:
+        panels.append(
+            charts.line_chart(
+                {size: (table["n_particles"], fps) for size, fps in table["fps"].items()},
+                title="Table 3.2: frames/s per box size (thesis, C++: 150x200 N = 100 at 4.85)",
+                xlabel="particles N",
+                ylabel="frames/s",
+                log_x=True,
+                ylim=(0.0, 1.1 * max(max(v) for v in table["fps"].values())),
+            )
+        )
+    charts.save_png(np.concatenate(panels), path)
+
+
 if __name__ == "__main__":
-    main(ARGS)
+    if ARGS.figure_only:
+        stem = Path(ARGS.out) if ARGS.out else Path(__file__).parent / "results" / "bench_colour"
+        figure(json.loads(stem.with_suffix(".json").read_text()), stem.with_suffix(".png"))
+        print(f"wrote {stem.with_suffix('.png')}")
+    else:
+        main(ARGS)

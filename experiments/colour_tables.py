@@ -26,7 +26,8 @@ Tables:
 * ``crossing``: real OTB Crossing (../shared/data/otb/Crossing), if present.
 
 Run: ``python experiments/colour_tables.py`` (``--quick`` for a smoke run).
-Writes ``experiments/results/colour_tables.json`` and ``.md``.
+Writes ``experiments/results/colour_tables.json``, ``.md`` and ``.png`` (Table 3.1
+against the thesis's, Crossing success plots; ``--figure-only`` redraws it from the JSON).
 """
 
 from __future__ import annotations
@@ -43,9 +44,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cpf_jax import charts
 from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params, track_boxes
 from cpf_jax.dynamics import THESIS_TAU
-from cpf_jax.metrics import summarise
+from cpf_jax.metrics import run_success_curve, summarise
 from cpf_jax.synthetic import make_sequence
 from cpf_jax.types import Frame
 
@@ -143,6 +145,7 @@ def crossing(n_particles: int, keys: int, config: ColourConfig, params) -> dict 
     ks = jax.random.split(jax.random.PRNGKey(7), keys)
     boxes = np.asarray(_runner(cfg)(params, ks, frames, box))
     runs = [summarise(b, rec.boxes, rec.visible) for b in boxes]
+    curve = np.mean([run_success_curve(b, rec.boxes, rec.visible) for b in boxes], axis=0)
     return {
         "success_rate": float(np.mean([r["success_rate"] for r in runs])),
         "auc": float(np.mean([r["auc"] for r in runs])),
@@ -150,7 +153,121 @@ def crossing(n_particles: int, keys: int, config: ColourConfig, params) -> dict 
         "n_particles": n_particles,
         "runs": keys,
         "success_rate_per_run": [round(r["success_rate"], 1) for r in runs],
+        # OTB success plot (IoU > t for t = 0, 0.05, ..., 1), averaged over the runs.
+        "success_curve": curve.round(4).tolist(),
     }
+
+
+def likelihood_term_variants(base: ColourConfig, params) -> dict:
+    """``likelihood_terms`` rows: label -> (config, params); the first is the default."""
+    return {
+        "default": (base, params),
+        **{
+            f"layout 12x3 (layout_weight {w})": (
+                dataclasses.replace(base, layout=(12, 3)),
+                params._replace(layout_weight=jnp.float32(w)),
+            )
+            for w in (10, 20)
+        },
+        **{
+            f"gradient layout 12x3 (layout_weight {w})": (
+                dataclasses.replace(base, layout=(12, 3), layout_feature="gradient"),
+                params._replace(layout_weight=jnp.float32(w)),
+            )
+            for w in (10, 20)
+        },
+        "mixture contrast": (dataclasses.replace(base, contrast="mixture"), params),
+        "mixture + layout 12x3 (contrast_weight 5, layout_weight 20)": (
+            dataclasses.replace(base, contrast="mixture", layout=(12, 3)),
+            params._replace(contrast_weight=jnp.float32(5.0), layout_weight=jnp.float32(20.0)),
+        ),
+    }
+
+
+# The thesis's Table 3.1 (success rate % vs N), drawn beside ours.
+THESIS_TABLE_3_1 = {
+    20: 37.5,
+    40: 49.0,
+    60: 68.0,
+    80: 79.0,
+    100: 85.5,
+    120: 87.0,
+    140: 90.5,
+    160: 91.0,
+}
+
+
+def figure(res: dict, path: Path) -> None:
+    """``colour_tables.png``: Table 3.1 against the thesis's, and the Crossing success
+    plots of the default and the optional likelihood terms (what the run has so far)."""
+    panels = []
+    if res.get("table_3_1"):
+        series = {
+            "ours (default: random walk)": _curve(res["table_3_1"]),
+            "ours, thesis model (8-tuple AR1, motion-guided)": _curve(
+                res.get("table_3_1_ar1") or {}
+            ),
+            "thesis Table 3.1": _curve(THESIS_TABLE_3_1),
+        }
+        series = {k: v for k, v in series.items() if len(v[0])}
+        panels.append(
+            charts.line_chart(
+                series,
+                title="Table 3.1: success rate vs particles (synthetic walking scenes)",
+                xlabel="particles N",
+                ylabel="success rate (%)",
+                ylim=(0, 100),
+            )
+        )
+    curves = {}
+    if (res.get("crossing") or {}).get("success_curve"):
+        curves["default"] = res["crossing"]["success_curve"]
+    for label, row in res.get("likelihood_terms", {}).items():
+        if label != "default" and (row.get("crossing") or {}).get("success_curve"):
+            curves[label] = row["crossing"]["success_curve"]
+    if curves:
+        panels.append(
+            charts.success_plot(
+                curves, title="OTB Crossing, N = 100 (OpenCV CSRT: AUC 70.0, success rate 95.0)"
+            )
+        )
+    if panels:
+        width = max(p.shape[1] for p in panels)
+        charts.save_png(
+            np.concatenate(
+                [
+                    np.pad(p, ((0, 0), (0, width - p.shape[1]), (0, 0)), constant_values=255)
+                    for p in panels
+                ]
+            ),
+            path,
+        )
+
+
+def _curve(d: dict) -> tuple[list[float], list[float]]:
+    return [float(k) for k in d], [float(v) for v in d.values()]
+
+
+def add_crossing_curves(res: dict) -> None:
+    """Re-run Crossing for the rows that lack a success curve (JSON from before curves
+    were stored), with the row's own settings and seeds, and check the scores match."""
+    base, params = ColourConfig(), default_colour_params()
+    rows = [("default", res.get("crossing"), (base, params))]
+    variants = likelihood_term_variants(base, params)
+    for label, row in res.get("likelihood_terms", {}).items():
+        if label != "default" and label in variants:
+            rows.append((label, row.get("crossing"), variants[label]))
+    for label, stored, (cfg, p) in rows:
+        if not stored or stored.get("success_curve"):
+            continue
+        fresh = crossing(stored["n_particles"], stored["runs"], cfg, p)
+        if fresh is None:
+            return
+        for k in ("success_rate", "auc"):
+            if abs(fresh[k] - stored[k]) > 0.05:
+                print(f"warning: Crossing {label} {k} {fresh[k]:.2f} != stored {stored[k]:.2f}")
+        stored["success_curve"] = fresh["success_curve"]
+        print(f"crossing curve: {label}", flush=True)
 
 
 def _md_row(d: dict, fmt="{:.1f}") -> tuple[str, str]:
@@ -160,6 +277,7 @@ def _md_row(d: dict, fmt="{:.1f}") -> tuple[str, str]:
 
 def markdown(res: dict) -> str:
     lines = ["# Colour-layer tables (synthetic sequences)", "", res["meta"]["note"], ""]
+    lines += ["Figure: `colour_tables.png` (Table 3.1, Crossing success plots).", ""]
 
     def table(title, d):
         if not d:
@@ -231,7 +349,20 @@ def main(argv=None) -> dict:
     ap.add_argument("--keys", type=int, default=3, help="filter seeds per scene")
     ap.add_argument("--quick", action="store_true", help="one scene, one key, fewer rows")
     ap.add_argument("--out", default=str(RESULTS / "colour_tables.json"))
+    ap.add_argument(
+        "--figure-only",
+        action="store_true",
+        help="redraw the figure from the JSON at --out (re-running Crossing for missing curves)",
+    )
     args = ap.parse_args(argv)
+    if args.figure_only:
+        out = Path(args.out)
+        res = json.loads(out.read_text())
+        add_crossing_curves(res)
+        out.write_text(json.dumps(res, indent=2) + "\n")
+        figure(res, out.with_suffix(".png"))
+        print(f"wrote {out.with_suffix('.png')}")
+        return res
     seeds = range(1 if args.quick else args.scene_seeds)
     keys = 1 if args.quick else args.keys
     ns = (20, 100) if args.quick else (20, 40, 60, 80, 100, 120, 140, 160)
@@ -264,6 +395,7 @@ def main(argv=None) -> dict:
         res["meta"]["seconds"] = round(time.time() - t0)
         out.write_text(json.dumps(res, indent=2) + "\n")
         out.with_suffix(".md").write_text(markdown(res))
+        figure(res, out.with_suffix(".png"))
         # Drop compiled runners between tables: a whole run compiles dozens of
         # configs, and the full run died twice in LLVM ("Cannot allocate memory")
         # at the likelihood_terms stage with every executable kept.
@@ -366,28 +498,7 @@ def main(argv=None) -> dict:
     print(f"crossing: {res['crossing']}", flush=True)
     save()
 
-    terms = {
-        "default": (base, params),
-        **{
-            f"layout 12x3 (layout_weight {w})": (
-                dataclasses.replace(base, layout=(12, 3)),
-                params._replace(layout_weight=jnp.float32(w)),
-            )
-            for w in (10, 20)
-        },
-        **{
-            f"gradient layout 12x3 (layout_weight {w})": (
-                dataclasses.replace(base, layout=(12, 3), layout_feature="gradient"),
-                params._replace(layout_weight=jnp.float32(w)),
-            )
-            for w in (10, 20)
-        },
-        "mixture contrast": (dataclasses.replace(base, contrast="mixture"), params),
-        "mixture + layout 12x3 (contrast_weight 5, layout_weight 20)": (
-            dataclasses.replace(base, contrast="mixture", layout=(12, 3)),
-            params._replace(contrast_weight=jnp.float32(5.0), layout_weight=jnp.float32(20.0)),
-        ),
-    }
+    terms = likelihood_term_variants(base, params)
     res["likelihood_terms"] = {}
     for label, (cfg, p) in terms.items():
         cfg100 = dataclasses.replace(cfg, n_particles=100)

@@ -39,7 +39,7 @@ import optax
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import colour_tables as ct  # noqa: E402
 
-from cpf_jax import tuning  # noqa: E402
+from cpf_jax import charts, tuning  # noqa: E402
 from cpf_jax.colour import PARAM_CONSTRAINTS, ColourConfig, default_colour_params  # noqa: E402
 from cpf_jax.synthetic import make_sequence  # noqa: E402
 
@@ -69,7 +69,13 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=0.2)
     ap.add_argument("--quick", action="store_true", help="2 scenes, 5 steps, 1 held-out seed")
     ap.add_argument("--out", default=str(ct.RESULTS / "tune_colour.json"))
+    ap.add_argument("--figure-only", action="store_true", help="redraw the figure from --out")
     args = ap.parse_args()
+    if args.figure_only:
+        out = Path(args.out)
+        figure(json.loads(out.read_text()), out.with_suffix(".png"))
+        print(f"wrote {out.with_suffix('.png')}")
+        return
 
     names = ct.WALKING[:2] if args.quick else ct.WALKING
     steps = 5 if args.quick else args.steps
@@ -147,7 +153,15 @@ def main() -> None:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(res, indent=1))
         out.with_suffix(".md").write_text(_markdown(res))
-        print(f"wrote {out} and {out.with_suffix('.md')}", flush=True)
+        figure(res, out.with_suffix(".png"))
+        print(f"wrote {out}, {out.with_suffix('.md')} and {out.with_suffix('.png')}", flush=True)
+
+
+def figure(res: dict, path: Path) -> None:
+    """Loss curves of every finished start (``tuning.history_chart``)."""
+    runs = {label: r["history"] for label, r in res["runs"].items()}
+    title = "Gradient tuning of the colour likelihood (training scenes)"
+    charts.save_png(tuning.history_chart(runs, title=title), path)
 
 
 def _markdown(res: dict) -> str:

@@ -41,7 +41,7 @@ import optax
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import occlusion_tables as ot  # noqa: E402
 
-from cpf_jax import tuning  # noqa: E402
+from cpf_jax import charts, tuning  # noqa: E402
 from cpf_jax.rgbd import (  # noqa: E402
     PARAM_CONSTRAINTS,
     build_rgbd_filter,
@@ -162,7 +162,13 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=0.1)
     ap.add_argument("--quick", action="store_true", help="1 scene, 2 steps, 1 held-out key")
     ap.add_argument("--out", default=str(ot.RESULTS / "tune_rgbd.json"))
+    ap.add_argument("--figure-only", action="store_true", help="redraw the figure from --out")
     args = ap.parse_args()
+    if args.figure_only:
+        out = Path(args.out)
+        figure(json.loads(out.read_text()), out.with_suffix(".png"))
+        print(f"wrote {out.with_suffix('.png')}")
+        return
     scenes = TRAIN_SCENES[:1] if args.quick else TRAIN_SCENES
     steps = 2 if args.quick else args.steps
     n_frames = 30 if args.quick else TRAIN_FRAMES
@@ -232,7 +238,15 @@ def main() -> None:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(res, indent=1))
         out.with_suffix(".md").write_text(_markdown(res))
-        print(f"wrote {out} and {out.with_suffix('.md')}", flush=True)
+        figure(res, out.with_suffix(".png"))
+        print(f"wrote {out}, {out.with_suffix('.md')} and {out.with_suffix('.png')}", flush=True)
+
+
+def figure(res: dict, path: Path) -> None:
+    """Loss curves of every finished start (``tuning.history_chart``)."""
+    runs = {label: r["history"] for label, r in res["runs"].items()}
+    title = "Gradient tuning of the grid-occlusion likelihood (synthetic occlusion scenes)"
+    charts.save_png(tuning.history_chart(runs, title=title), path)
 
 
 def _row(label: str, values: dict, names, held: dict) -> str:

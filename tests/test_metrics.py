@@ -86,6 +86,23 @@ def test_summarise_matches_reference_loop(seed):
     assert got["mismatches"] == 0
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_run_success_curve_follows_the_reference_loop(seed):
+    pred, gt, visible, lost = random_run(np.random.default_rng(seed))
+    curve = M.run_success_curve(pred, gt, visible, lost)
+    # Plain loop: visible frames only, a lost frame scores IoU 0, strict "> t".
+    ious = [
+        0.0 if lost[t] else ref_iou(pred[t].tolist(), gt[t].tolist())
+        for t in range(len(pred))
+        if visible[t]
+    ]
+    want = [np.mean([v > th for v in ious]) for th in np.linspace(0, 1, 21)]
+    np.testing.assert_allclose(curve, want, atol=1e-6)
+    assert 100 * curve.mean() == pytest.approx(M.summarise(pred, gt, visible, lost)["auc"])
+    with pytest.raises(ValueError, match="lost must have shape"):
+        M.run_success_curve(pred, gt, visible, lost[:-1])
+
+
 def test_hand_worked_example():
     gt = np.array([[10, 10, 20, 20], [10, 10, 20, 20], [0, 0, 0, 0], [5, 5, 10, 10]], np.float32)
     pred = np.array([[10, 10, 20, 20], [15, 10, 20, 20], [3, 3, 4, 4], [np.nan] * 4], np.float32)

@@ -7,7 +7,7 @@ import numpy as np
 import optax
 import pytest
 
-from cpf_jax import rgbd, tuning
+from cpf_jax import charts, rgbd, tuning
 from cpf_jax.colour import PARAM_CONSTRAINTS, ColourConfig, default_colour_params
 from cpf_jax.kernels.background import median_background
 from cpf_jax.synthetic import make_sequence
@@ -256,3 +256,20 @@ def test_progress_prints_each_step(capsys):
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "run step   3 loss 0.2500 sigma 0.125 beta_a 2.000"
     assert lines[1].endswith("validation 0.3000")
+
+
+def test_history_chart_draws_training_and_validation_losses():
+    history = [
+        {"step": 0, "loss": 0.5},
+        {"step": 1, "loss": 0.4, "validation": 0.45},
+        {"step": 2, "loss": 0.3},
+    ]
+    one = tuning.history_chart({"a": history[:1] + [history[2]]})
+    both = tuning.history_chart({"a": history})
+    assert one.ndim == 3 and one.dtype == np.uint8
+    # One legend line per series: the validation loss is a second series.
+    assert both.shape[0] - one.shape[0] == 16
+    # Training in the first palette colour, validation in the second.
+    for colour in charts.PALETTE[:2]:
+        assert np.any(np.all(np.abs(both.astype(int) - colour) <= 10, axis=-1))
+    assert not np.any(np.all(np.abs(one.astype(int) - charts.PALETTE[1]) <= 10, axis=-1))
