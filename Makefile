@@ -35,6 +35,7 @@ experiments: $(STAMP)
 figures: $(STAMP)
 	$(BIN)/python experiments/colour_tables.py --figure-only
 	$(BIN)/python experiments/bench_colour.py --figure-only
+	$(BIN)/python experiments/bench_rgbd.py --figure-only
 	$(BIN)/python experiments/tune_colour.py --figure-only
 	$(BIN)/python experiments/tune_rgbd.py --figure-only
 

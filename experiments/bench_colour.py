@@ -550,6 +550,21 @@ def main(args) -> dict:
     return results
 
 
+def fps_chart(ns, ms_by_label: dict, title: str, xlabel: str = "particles N"):
+    """Frames/s against N (log axis) of each label's ms-per-frame list (None: not timed)."""
+    from cpf_jax import charts
+
+    series = {
+        label: (ns, [1000.0 / v if v else float("nan") for v in ms])
+        for label, ms in ms_by_label.items()
+        if any(v is not None for v in ms)
+    }
+    top = max(max((v for v in y if v == v), default=1.0) for _, y in series.values())
+    return charts.line_chart(
+        series, title=title, xlabel=xlabel, ylabel="frames/s", log_x=True, ylim=(0.0, 1.1 * top)
+    )
+
+
 def figure(results: dict, path: Path) -> None:
     """Frames/s vs N of each step variant and the OpenCV loop; the Table 3.2 grid."""
     from cpf_jax import charts
@@ -562,32 +577,22 @@ def figure(results: dict, path: Path) -> None:
         "with gradient layout 12x3": "gradient_layout_ms_per_frame",
         "OpenCV calcHist + compareHist loop": "baseline_ms_per_frame",
     }
-    series = {}
-    for label, key in variants.items():
-        ms = [results[str(n)].get(key) for n in ns]
-        if any(v is not None for v in ms):
-            series[label] = (ns, [1000.0 / v if v else float("nan") for v in ms])
+    meta = results["meta"]
     panels = [
-        charts.line_chart(
-            series,
-            title=f"One colour step, {results['meta']['frame']} frame, "
-            f"box {results['meta']['box']} ({results['meta']['cores']} cores)",
-            xlabel="particles N (OpenCV loop scaled linearly above N = 10,000)",
-            ylabel="frames/s",
-            log_x=True,
-            ylim=(0.0, 1.1 * max(max(v for v in y if v == v) for _, y in series.values())),
+        fps_chart(
+            ns,
+            {label: [results[str(n)].get(key) for n in ns] for label, key in variants.items()},
+            f"One colour step, {meta['frame']} frame, box {meta['box']} ({meta['cores']} cores)",
+            "particles N (OpenCV loop scaled linearly above N = 10,000)",
         )
     ]
     table = results.get("table_3_2")
     if table:
         panels.append(
-            charts.line_chart(
-                {size: (table["n_particles"], fps) for size, fps in table["fps"].items()},
-                title="Table 3.2: frames/s per box size (thesis, C++: 150x200 N = 100 at 4.85)",
-                xlabel="particles N",
-                ylabel="frames/s",
-                log_x=True,
-                ylim=(0.0, 1.1 * max(max(v) for v in table["fps"].values())),
+            fps_chart(
+                table["n_particles"],
+                table["ms_per_frame"],
+                "Table 3.2: frames/s per box size (thesis, C++: 150x200 N = 100 at 4.85)",
             )
         )
     charts.save_png(np.concatenate(panels), path)

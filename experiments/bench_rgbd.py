@@ -2,6 +2,7 @@
 
     python experiments/bench_rgbd.py            # -> results/bench_rgbd.{json,md}
     python experiments/bench_rgbd.py --quick    # few repeats, N <= 1,000 (smoke test)
+    python experiments/bench_rgbd.py --figure-only  # redraw results/bench_rgbd.png
 
 "RGB-D step" = one jitted ``step`` of ``cpf_jax.rgbd.build_rgbd_filter`` for each
 of the paper's RGB-D variants ("rgbd", "grid", "grid-occlusion"; the "rgb" row is
@@ -43,6 +44,7 @@ def _parse_args(argv=None):
     p.add_argument("--quick", action="store_true", help="few repeats, N <= 1,000")
     p.add_argument("--repeats", type=int, default=30, help="timed steps per setting")
     p.add_argument("--out", default=None, help="results path stem (default results/bench_rgbd)")
+    p.add_argument("--figure-only", action="store_true", help="redraw the figure from the JSON")
     return p.parse_args(argv)
 
 
@@ -275,8 +277,25 @@ def main(args) -> dict:
         stem = Path(args.out) if args.out else Path(__file__).parent / "results" / "bench_rgbd"
         stem.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
         stem.with_suffix(".md").write_text(md)
+        figure(results, stem.with_suffix(".png"))
     return results
 
 
+def figure(results: dict, path: Path) -> None:
+    """``bench_rgbd.png``: frames/s against N of each variant's step and the loop."""
+    from cpf_jax import charts
+
+    ns = results["meta"]["n_particles"]
+    ms = {v: [results[str(n)][v]["ms_per_frame"] for n in ns] for v in VARIANTS}
+    ms["OpenCV + NumPy per-cell loop"] = [results[str(n)]["baseline_ms_per_frame"] for n in ns]
+    title = f"One RGB-D step, {results['meta']['frame']} ({results['meta']['cores']} cores)"
+    charts.save_png(bench_colour.fps_chart(ns, ms, title), path)
+
+
 if __name__ == "__main__":
-    main(ARGS)
+    if ARGS.figure_only:
+        stem = Path(ARGS.out) if ARGS.out else Path(__file__).parent / "results" / "bench_rgbd"
+        figure(json.loads(stem.with_suffix(".json").read_text()), stem.with_suffix(".png"))
+        print(f"wrote {stem.with_suffix('.png')}")
+    else:
+        main(ARGS)
