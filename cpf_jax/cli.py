@@ -28,6 +28,8 @@ read once, in order: ``--init`` is required (a box, or ``auto``: the first frame
 the run ends with the stream, ``--max-frames`` or Ctrl-C, and the camera is stopped
 however it ends. The Rerun log goes to ``--rrd FILE``,
 a new viewer (``--spawn``) or a running one (``--connect URL``, checked before tracking).
+``--plot FILE.png`` draws the run (IoU and ESS / N per frame, the success plot) at its end,
+or when it is interrupted.
 
 Exit codes: 0 success, 2 bad input (path, image, box, option, camera, viewer), 130
 interrupted.
@@ -181,6 +183,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="write frame,x,y,w,h rows (CSV) as the run goes")
     p.add_argument("--rrd", help="write a Rerun recording to this .rrd file")
     p.add_argument(
+        "--plot",
+        help="write a PNG of the run: IoU (with ground truth) and ESS/N per frame, and the "
+        "success plot (also written when the run is interrupted)",
+    )
+    p.add_argument(
         "--spawn",
         action="store_true",
         help="start a Rerun viewer and stream the log to it (needs a display)",
@@ -320,6 +327,13 @@ def _run(args: argparse.Namespace) -> int:
         raise UsageError(f"--particles must be >= 1, got {args.particles}")
     if args.sigma is not None and not args.sigma > 0:
         raise UsageError(f"--sigma must be > 0, got {args.sigma}")
+    if args.plot is not None and Path(args.plot).suffix.lower() != ".png":
+        raise UsageError(f"--plot writes a PNG: give a .png path, got {args.plot!r}")
+    if args.plot is not None:
+        try:  # fail now, not after the run
+            Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise UsageError(f"--plot {args.plot}: cannot create its folder ({e})") from None
 
     from cpf_jax.io import open_source
 
@@ -472,6 +486,7 @@ def _track(args: argparse.Namespace, source) -> int:
     done: list[int] = []
     pred: list[np.ndarray] = []
     lost: list[bool] = []
+    esses: list[float] = []
     pts2d: list[np.ndarray] = []
     pts3d: list[np.ndarray] = []
     n_points = len(point_names)
@@ -520,6 +535,7 @@ def _track(args: argparse.Namespace, source) -> int:
             done.append(i)
             pred.append(est)
             lost.append(is_lost)
+            esses.append(ess)
             pts2d.append(p2)
             pts3d.append(p3)
             if writer is not None:
@@ -543,14 +559,18 @@ def _track(args: argparse.Namespace, source) -> int:
                     logger.log_points3d(i, body, "body/surface", radius=0.004)
             bar.update()
         bar.close()  # the final progress line only for a completed run
-    except BaseException:
+    except BaseException as exc:
         # An error or Ctrl-C is on its way: close the sinks (the CSV keeps its rows, the
         # .rrd is completed) without letting a viewer that cannot take the log replace it.
         _close_sinks(writer, logger, failing=True)
+        if isinstance(exc, KeyboardInterrupt) and args.plot and done:
+            _write_plot(args, source, done, pred, lost, esses, n_box_of(config, cascade))
         raise
     _close_sinks(writer, logger)
+    n_box = n_box_of(config, cascade)
+    if args.plot and done:
+        _write_plot(args, source, done, pred, lost, esses, n_box)
 
-    n_box = config.box.n_particles if cascade is not None else config.n_particles
     print(
         f"tracked {len(done)} frames of {source.describe()} with N={n_box} "
         f"(model {args.model}{', depth registered' if calib is not None else ''}"
@@ -582,7 +602,51 @@ def _track(args: argparse.Namespace, source) -> int:
         print(f"boxes written to {args.out}")
     if args.rrd:
         print(f"Rerun recording written to {args.rrd}")
+    if args.plot and done:
+        print(f"plot written to {args.plot}")
     return 0
+
+
+def n_box_of(config, cascade) -> int:
+    """Particles of the box filter (layer 1 of a cascade)."""
+    return config.box.n_particles if cascade is not None else config.n_particles
+
+
+def _write_plot(args, source, done, pred, lost, esses, n_particles: int) -> None:
+    """``--plot``: per-frame IoU (with ground truth; 0 when lost) and ESS / N, and the
+    success plot with its AUC, as one PNG (``cpf_jax.charts``)."""
+    from cpf_jax import charts
+    from cpf_jax.metrics import frame_ious, run_success_curve
+
+    idx = np.asarray(done, int)
+    ess = np.asarray(esses, np.float64) / n_particles
+    series = {"ESS / N": (idx, ess)}
+    name = Path(str(args.path)).name or str(args.path)
+    curve = None
+    if source.gt_boxes is not None:
+        boxes, gt = np.stack(pred), np.asarray(source.gt_boxes, np.float32)[idx]
+        vis = np.ones(idx.size, bool) if source.visible is None else np.asarray(source.visible)
+        vis = vis[idx] & (gt[:, 2] > 0) & (gt[:, 3] > 0)
+        iou = np.where(np.asarray(lost), 0.0, np.asarray(frame_ious(boxes, gt), np.float64))
+        series = {"IoU with the ground truth (0: lost)": (idx, np.where(vis, iou, np.nan))}
+        series["ESS / N"] = (idx, ess)
+        curve = run_success_curve(boxes, gt, vis, np.asarray(lost))
+    panels = [
+        charts.line_chart(
+            series,
+            title=f"{name}: per frame",
+            xlabel="frame",
+            ylabel="IoU, ESS / N",
+            ylim=(0.0, 1.0),
+            markers=idx.size <= 60,
+        )
+    ]
+    if curve is not None:
+        panels.append(charts.success_plot({name: curve}, title=f"{name}: success plot"))
+    try:
+        charts.save_png(np.concatenate(panels), args.plot)
+    except OSError as e:
+        raise CpfJaxError(f"--plot: {e}") from None
 
 
 def _start_and_box(

@@ -22,11 +22,13 @@ def folder(tmp_path_factory) -> Path:
 
 
 def test_tracks_folder_writes_csv_rrd_and_summary(folder, tmp_path, capsys):
-    out, rrd = tmp_path / "boxes.csv", tmp_path / "run.rrd"
-    code = main(
-        [str(folder), "--particles", "64", "--out", str(out), "--rrd", str(rrd), "--no-progress"]
-    )
+    out, rrd, plot = tmp_path / "boxes.csv", tmp_path / "run.rrd", tmp_path / "p" / "run.png"
+    argv = [str(folder), "--particles", "64", "--out", str(out), "--rrd", str(rrd)]
+    code = main([*argv, "--plot", str(plot), "--no-progress"])
     assert code == 0
+    # --plot: per-frame IoU and ESS panel, and the success plot (ground truth exists).
+    img = cv2.imread(str(plot))
+    assert img is not None and img.shape[0] > 2 * 360 and img.shape[1] == 640
     printed = capsys.readouterr().out
     assert "SR@0.5 %" in printed and f"tracked {N_FRAMES} frames" in printed
     assert "whole frame" not in printed  # every step counted in the histogram window
@@ -97,6 +99,7 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
         (["{folder}", "--layout-mirror"], "need --layout"),
         (["{folder}", "--model", "rgbd", "--contrast", "mixture"], "--model rgb"),
         (["{folder}", "--model", "rgbd", "--background", "empty"], "empty-scene"),
+        (["{folder}", "--plot", "run.jpg"], "--plot"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(folder, capsys, args, needle):
@@ -264,11 +267,14 @@ def test_live_interrupt_keeps_the_rows_so_far_and_stops_the_camera(folder, camer
 
     recorded = open_source(str(folder))
     cam = camera([recorded.read(i) for i in range(len(recorded))], interrupt_after=5)
-    out = tmp_path / "i.csv"
+    out, plot = tmp_path / "i.csv", tmp_path / "i.png"
     argv = ["kinect2", "--init", "100,80,60,190", "--particles", "64", "--out", str(out)]
-    assert main([*argv, "--no-progress"]) == 130
+    assert main([*argv, "--plot", str(plot), "--no-progress"]) == 130
     np.testing.assert_array_equal(read_results(out)["frame"], np.arange(5))
     assert cam.closed
+    # The plot of the frames so far: one panel (a camera has no ground truth).
+    img = cv2.imread(str(plot))
+    assert img is not None and 360 < img.shape[0] < 2 * 360
 
 
 def test_live_interrupt_is_not_hidden_by_a_viewer_error(
