@@ -156,44 +156,26 @@ def self_occlusion_frames(seq) -> np.ndarray:
 
 
 def figure_errors(curves: dict, path: Path, title: str) -> None:
-    """Error per frame (thesis Fig. 5.7 style), one panel per hand."""
-    h, w, m = 300, 560, 50
-    colours = {"spin": (40, 40, 220), "geodesic": (40, 160, 40), "combined": (200, 80, 20)}
+    """Error per frame (thesis Fig. 5.7 style), one panel per hand (``cpf_jax.charts``)."""
+    from cpf_jax import charts
+
     panels = []
     for k, hand in enumerate(("left hand", "right hand")):
-        img = np.full((h, w, 3), 255, np.uint8)
-        t = len(next(iter(curves.values()))[:, k])
-        ymax = 300.0
-        cv2.line(img, (m, h - m), (w - 10, h - m), (0, 0, 0), 1)
-        cv2.line(img, (m, 10), (m, h - m), (0, 0, 0), 1)
-        for v in (50, 100, 200, 300):
-            y = int(h - m - v / ymax * (h - m - 10))
-            cv2.line(img, (m - 4, y), (w - 10, y), (225, 225, 225), 1)
-            cv2.putText(img, str(v), (5, y + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
-        for name, c in curves.items():
-            pts = [
-                (
-                    int(m + i / (t - 1) * (w - m - 10)),
-                    int(h - m - min(c[i, k], ymax) / ymax * (h - m - 10)),
-                )
-                for i in range(t)
-            ]
-            cv2.polylines(img, [np.array(pts, np.int32)], False, colours[name], 1, cv2.LINE_AA)
-        cv2.putText(
-            img,
-            f"{title}: {hand}, 3D error (mm, clipped at 300) vs frame",
-            (m, h - 15),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.4,
-            (0, 0, 0),
-            1,
-        )
-        for j, name in enumerate(curves):
-            cv2.putText(
-                img, name, (w - 110, 25 + 16 * j), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colours[name], 1
+        series = {
+            name: (np.arange(len(c)), np.minimum(c[:, k], 300.0)) for name, c in curves.items()
+        }
+        panels.append(
+            charts.line_chart(
+                series,
+                title=f"{title}: {hand}, 3D error (mm, clipped at 300)",
+                xlabel="frame",
+                ylabel="error (mm)",
+                ylim=(0.0, 300.0),
+                size=(560, 300),
+                markers=False,
             )
-        panels.append(img)
-    cv2.imwrite(str(path), np.concatenate(panels, 0))
+        )
+    charts.save_png(np.concatenate(panels), path)
 
 
 def figure_frames(seq, infos: dict, path: Path, frames=(10, 60, 110, 160, 199)) -> None:
