@@ -90,3 +90,18 @@ for t in np.linspace(0, N_FRAMES - 1, 4).astype(int):
     tiles.append(img)
 sheet = np.hstack(tiles)
 print("contact sheet", sheet.shape)
+
+# %% [markdown]
+# The OTB success plot of each sigma's run (`run_success_curve` scores a run by the rules of
+# `summarise`; its mean is the AUC), drawn with `cpf_jax.charts` (OpenCV, BGR image).
+
+# %%
+from cpf_jax import charts  # noqa: E402
+from cpf_jax.metrics import run_success_curve  # noqa: E402
+
+curves = {
+    f"sigma {float(s):.2f}": run_success_curve(np.asarray(b), seq.boxes, seq.visible)
+    for s, b in zip(sigmas, by_sigma, strict=True)
+}
+plot = charts.success_plot(curves, title="walk_across_medium, one seed per sigma")
+print("success plot", plot.shape, {k: round(100 * float(v.mean()), 1) for k, v in curves.items()})
