@@ -636,7 +636,7 @@ def _write_plot(args, source, done, pred, lost, esses, n_particles: int) -> None
             series,
             title=f"{name}: per frame",
             xlabel="frame",
-            ylabel="IoU, ESS / N",
+            ylabel="IoU, ESS / N" if curve is not None else "ESS / N",
             ylim=(0.0, 1.0),
             markers=idx.size <= 60,
         )
