@@ -564,10 +564,13 @@ def _track(args: argparse.Namespace, source) -> int:
         # .rrd is completed) without letting a viewer that cannot take the log replace it.
         _close_sinks(writer, logger, failing=True)
         if isinstance(exc, KeyboardInterrupt) and args.plot and done:
-            _write_plot(args, source, done, pred, lost, esses, n_box_of(config, cascade))
+            try:
+                _write_plot(args, source, done, pred, lost, esses, _n_box(config, cascade))
+            except CpfJaxError as e:  # the interrupt, not the plot, is what happened
+                print(f"cpf-track: warning: {e}", file=sys.stderr)
         raise
     _close_sinks(writer, logger)
-    n_box = n_box_of(config, cascade)
+    n_box = _n_box(config, cascade)
     if args.plot and done:
         _write_plot(args, source, done, pred, lost, esses, n_box)
 
@@ -607,7 +610,7 @@ def _track(args: argparse.Namespace, source) -> int:
     return 0
 
 
-def n_box_of(config, cascade) -> int:
+def _n_box(config, cascade) -> int:
     """Particles of the box filter (layer 1 of a cascade)."""
     return config.box.n_particles if cascade is not None else config.n_particles
 
@@ -616,7 +619,7 @@ def _write_plot(args, source, done, pred, lost, esses, n_particles: int) -> None
     """``--plot``: per-frame IoU (with ground truth; 0 when lost) and ESS / N, and the
     success plot with its AUC, as one PNG (``cpf_jax.charts``)."""
     from cpf_jax import charts
-    from cpf_jax.metrics import frame_ious, run_success_curve
+    from cpf_jax.metrics import run_ious, success_curve
 
     idx = np.asarray(done, int)
     ess = np.asarray(esses, np.float64) / n_particles
@@ -624,13 +627,11 @@ def _write_plot(args, source, done, pred, lost, esses, n_particles: int) -> None
     name = Path(str(args.path)).name or str(args.path)
     curve = None
     if source.gt_boxes is not None:
-        boxes, gt = np.stack(pred), np.asarray(source.gt_boxes, np.float32)[idx]
-        vis = np.ones(idx.size, bool) if source.visible is None else np.asarray(source.visible)
-        vis = vis[idx] & (gt[:, 2] > 0) & (gt[:, 3] > 0)
-        iou = np.where(np.asarray(lost), 0.0, np.asarray(frame_ious(boxes, gt), np.float64))
-        series = {"IoU with the ground truth (0: lost)": (idx, np.where(vis, iou, np.nan))}
+        vis = None if source.visible is None else np.asarray(source.visible)[idx]
+        iou, counts = run_ious(np.stack(pred), source.gt_boxes[idx], vis, np.asarray(lost))
+        series = {"IoU with the ground truth (0: lost)": (idx, np.where(counts, iou, np.nan))}
         series["ESS / N"] = (idx, ess)
-        curve = run_success_curve(boxes, gt, vis, np.asarray(lost))
+        curve = np.asarray(success_curve(iou, counts))
     panels = [
         charts.line_chart(
             series,

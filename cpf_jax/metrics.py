@@ -52,6 +52,7 @@ __all__ = [
     "point_errors",
     "point_error_summary",
     "summarise",
+    "run_ious",
     "run_success_curve",
     "format_summary",
 ]
@@ -289,23 +290,38 @@ def summarise(
     return {k: int(v) if k in counts else float(v) for k, v in out.items()}
 
 
-def run_success_curve(
+def run_ious(
     pred_boxes: Array,
     gt_boxes: Array,
     visible: Array | None = None,
     lost: Array | None = None,
-) -> np.ndarray:
-    """``[21]`` OTB success plot of one run (fraction of visible frames with ``IoU > t``,
-    ``t`` in :data:`OTB_THRESHOLDS`), by the rules of :func:`summarise`: a lost or empty
-    box scores IoU 0, frames without a ground-truth box are left out. Its mean x 100 is
-    ``summarise(...)["auc"]``.
+) -> tuple[np.ndarray, np.ndarray]:
+    """``([T] IoU, [T] bool counts)`` of one run by the rules of :func:`summarise`: a lost
+    or empty box scores IoU 0, and only frames with a visible ground-truth box count.
 
     Raises:
       ValueError: as :func:`summarise`.
     """
     pred, gt, vis_in, lost_in = _run_inputs(pred_boxes, gt_boxes, visible, lost)
     ious, vis, _ = _run_ious(pred, gt, vis_in, lost_in)
-    return np.asarray(success_curve(ious, vis), np.float64)
+    return np.asarray(ious, np.float64), np.asarray(vis, bool)
+
+
+def run_success_curve(
+    pred_boxes: Array,
+    gt_boxes: Array,
+    visible: Array | None = None,
+    lost: Array | None = None,
+) -> np.ndarray:
+    """``[21]`` OTB success plot of one run (fraction of counted frames with ``IoU > t``,
+    ``t`` in :data:`OTB_THRESHOLDS`; frames and IoUs of :func:`run_ious`). Its mean x 100
+    is ``summarise(...)["auc"]``.
+
+    Raises:
+      ValueError: as :func:`summarise`.
+    """
+    ious, counts = run_ious(pred_boxes, gt_boxes, visible, lost)
+    return np.asarray(success_curve(ious, counts), np.float64)
 
 
 def _run_inputs(pred_boxes, gt_boxes, visible, lost) -> tuple[np.ndarray, ...]:

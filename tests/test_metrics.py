@@ -87,7 +87,7 @@ def test_summarise_matches_reference_loop(seed):
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_run_success_curve_follows_the_reference_loop(seed):
+def test_run_ious_and_success_curve_follow_the_reference_loop(seed):
     pred, gt, visible, lost = random_run(np.random.default_rng(seed))
     curve = M.run_success_curve(pred, gt, visible, lost)
     # Plain loop: visible frames only, a lost frame scores IoU 0, strict "> t".
@@ -98,6 +98,9 @@ def test_run_success_curve_follows_the_reference_loop(seed):
     ]
     want = [np.mean([v > th for v in ious]) for th in np.linspace(0, 1, 21)]
     np.testing.assert_allclose(curve, want, atol=1e-6)
+    got, counts = M.run_ious(pred, gt, visible, lost)
+    np.testing.assert_array_equal(counts, visible)
+    np.testing.assert_allclose(got[counts], ious, atol=1e-6)
     assert 100 * curve.mean() == pytest.approx(M.summarise(pred, gt, visible, lost)["auc"])
     with pytest.raises(ValueError, match="lost must have shape"):
         M.run_success_curve(pred, gt, visible, lost[:-1])
