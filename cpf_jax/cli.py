@@ -27,7 +27,9 @@ read once, in order: ``--init`` is required (a box, or ``auto``: the first frame
 ``--background N`` takes the stream's first N frames and tracking starts after them;
 the run ends with the stream, ``--max-frames`` or Ctrl-C, and the camera is stopped
 however it ends. The Rerun log goes to ``--rrd FILE``,
-a new viewer (``--spawn``) or a running one (``--connect URL``, checked before tracking).
+a new viewer (``--spawn``) or a running one (``--connect URL``, checked before tracking;
+a viewer that goes away during the run fails it with exit 2 once the CSV, ``.rrd``, plot and
+summary are written).
 ``--plot FILE.png`` draws the run (IoU and ESS / N per frame, the success plot) at its end,
 or when it is interrupted.
 
@@ -569,7 +571,13 @@ def _track(args: argparse.Namespace, source) -> int:
             except CpfJaxError as e:  # the interrupt, not the plot, is what happened
                 print(f"cpf-track: warning: {e}", file=sys.stderr)
         raise
-    _close_sinks(writer, logger)
+    # A viewer that went away during the run fails the run (exit 2), but only after the
+    # results it did produce (CSV, .rrd, plot, summary) are written and printed.
+    viewer_error = None
+    try:
+        _close_sinks(writer, logger)
+    except ViewerUnavailable as e:
+        viewer_error = e
     n_box = _n_box(config, cascade)
     if args.plot and done:
         _write_plot(args, source, done, pred, lost, esses, n_box)
@@ -607,7 +615,7 @@ def _track(args: argparse.Namespace, source) -> int:
         print(f"Rerun recording written to {args.rrd}")
     if args.plot and done:
         print(f"plot written to {args.plot}")
-    return 0
+    return 0 if viewer_error is None else _fail(str(viewer_error))
 
 
 def _n_box(config, cascade) -> int:

@@ -282,7 +282,7 @@ def test_live_interrupt_is_not_hidden_by_a_viewer_error(
 ):
     # A streamed log whose viewer went away fails at close. After Ctrl-C that is one
     # warning line, and the run still ends as interrupted (130); without Ctrl-C the same
-    # failure is the run's error (exit 2).
+    # failure is the run's error (exit 2), reported after the run's own output.
     from cpf_jax import viz
     from cpf_jax.errors import ViewerUnavailable
     from cpf_jax.io import open_source
@@ -300,10 +300,12 @@ def test_live_interrupt_is_not_hidden_by_a_viewer_error(
     for interrupt, code in ((5, 130), (None, 2)):
         cam = camera(frames, interrupt_after=interrupt)
         assert main([*argv, "--max-frames", "6", "--rrd", str(tmp_path / "x.rrd")]) == code
-        err = capsys.readouterr().err
+        out, err = capsys.readouterr()
         assert "could not be delivered" in err and cam.closed
         if interrupt:
             assert "warning" in err and "interrupted" in err
+        else:
+            assert "tracked 6 frames" in out and "Rerun recording written" in out
 
 
 @pytest.mark.parametrize(
