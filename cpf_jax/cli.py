@@ -30,8 +30,8 @@ however it ends. The Rerun log goes to ``--rrd FILE``,
 a new viewer (``--spawn``) or a running one (``--connect URL``, checked before tracking;
 a viewer that goes away during the run fails it with exit 2 once the CSV, ``.rrd``, plot and
 summary are written).
-``--plot FILE.png`` draws the run (IoU and ESS / N per frame, the success plot) at its end,
-or when it is interrupted.
+``--plot FILE.png`` draws the run (IoU and ESS / N per frame, the success plot, the body
+points' 3D errors when they are scored) at its end, or when it is interrupted.
 
 Exit codes: 0 success, 2 bad input (path, image, box, option, camera, viewer), 130
 interrupted.
@@ -44,6 +44,7 @@ import itertools
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -567,7 +568,9 @@ def _track(args: argparse.Namespace, source) -> int:
         _close_sinks(writer, logger, failing=True)
         if isinstance(exc, KeyboardInterrupt) and args.plot and done:
             try:
-                _write_plot(args, source, done, pred, lost, esses, _n_box(config, cascade))
+                errs = _point_errors_of(args, source, point_names, pts2d, pts3d, done)
+                n_box = _n_box(config, cascade)
+                _write_plot(args, source, done, pred, lost, esses, n_box, errs)
             except CpfJaxError as e:  # the interrupt, not the plot, is what happened
                 print(f"cpf-track: warning: {e}", file=sys.stderr)
         raise
@@ -579,8 +582,9 @@ def _track(args: argparse.Namespace, source) -> int:
     except ViewerUnavailable as e:
         viewer_error = e
     n_box = _n_box(config, cascade)
+    point_errors = _point_errors_of(args, source, point_names, pts2d, pts3d, done)
     if args.plot and done:
-        _write_plot(args, source, done, pred, lost, esses, n_box)
+        _write_plot(args, source, done, pred, lost, esses, n_box, point_errors)
 
     print(
         f"tracked {len(done)} frames of {source.describe()} with N={n_box} "
@@ -598,17 +602,8 @@ def _track(args: argparse.Namespace, source) -> int:
         vis = None if source.visible is None else np.asarray(source.visible)[idx]
         summary = summarise(np.stack(pred), source.gt_boxes[idx], vis, np.asarray(lost))
         print(format_summary({Path(str(args.path)).name or str(args.path): summary}))
-    if cascade is not None and idx.size:
-        joints = None
-        if args.points == "joints":
-            joints = point_names
-        elif args.points == "auto":
-            joints = _auto_joints(source, idx[0])
-        if joints is not None:
-            table = _point_summary(
-                source, point_names, np.stack(pts2d), np.stack(pts3d), idx, joints
-            )
-            print(table)
+    if point_errors is not None:
+        print(_point_table(point_errors))
     if args.out:
         print(f"boxes written to {args.out}")
     if args.rrd:
@@ -623,9 +618,12 @@ def _n_box(config, cascade) -> int:
     return config.box.n_particles if cascade is not None else config.n_particles
 
 
-def _write_plot(args, source, done, pred, lost, esses, n_particles: int) -> None:
-    """``--plot``: per-frame IoU (with ground truth; 0 when lost) and ESS / N, and the
-    success plot with its AUC, as one PNG (``cpf_jax.charts``)."""
+def _write_plot(
+    args, source, done, pred, lost, esses, n_particles: int, points: _PointErrors | None = None
+) -> None:
+    """``--plot``: per-frame IoU (with ground truth; 0 when lost) and ESS / N, the
+    success plot with its AUC, and the body points' 3D errors per frame (scored against
+    synthetic joints), as one PNG (``cpf_jax.charts``)."""
     from cpf_jax import charts
     from cpf_jax.metrics import run_ious, success_curve
 
@@ -652,6 +650,23 @@ def _write_plot(args, source, done, pred, lost, esses, n_particles: int) -> None
     ]
     if curve is not None:
         panels.append(charts.success_plot({name: curve}, title=f"{name}: success plot"))
+    if points is not None and points.frames.size:
+        labels = [
+            n if n == j else f"{n} ({j})" for n, j in zip(points.names, points.joints, strict=True)
+        ]
+        panels.append(
+            charts.line_chart(
+                {
+                    label: (points.frames, np.minimum(points.err3d[:, k], 500.0))
+                    for k, label in enumerate(labels)
+                },
+                title=f"{name}: body points, 3D error (mm, clipped at 500; lost: 500)",
+                xlabel="frame",
+                ylabel="error (mm)",
+                ylim=(0.0, 500.0),
+                markers=False,
+            )
+        )
     try:
         charts.save_png(np.concatenate(panels), args.plot)
     except OSError as e:
@@ -860,10 +875,24 @@ def _auto_joints(source, start: int) -> tuple[str, ...] | None:
     return tuple(out)
 
 
-def _point_summary(source, names, pts2d, pts3d, done, joints) -> str:
-    """Median 2D / 3D errors of the points ``names`` against the synthetic ``joints``
-    over the tracked frames ``done`` (in order; ``pts2d [T, P, 2]``, ``pts3d [T, P, 3]`` of
-    those frames) where the target is visible."""
+class _PointErrors(NamedTuple):
+    names: tuple[str, ...]  # the tracked points
+    joints: tuple[str, ...]  # the synthetic joint each point stands for
+    frames: np.ndarray  # [T'] frames scored (visible target, not the initial frame)
+    err2d: np.ndarray  # [T', P] px
+    err3d: np.ndarray  # [T', P] mm (inf: no 3D estimate)
+
+
+def _point_errors_of(args, source, names, pts2d, pts3d, done) -> _PointErrors | None:
+    """Errors of the tracked points against the synthetic joints they stand for
+    (``--points joints`` or ``auto`` on a synthetic scenario), over the tracked frames
+    ``done`` where the target is visible; None without joints to score against."""
+    if not names or not done or args.points not in ("joints", "auto"):
+        return None
+    done = np.asarray(done, int)
+    joints = tuple(names) if args.points == "joints" else _auto_joints(source, done[0])
+    if joints is None:
+        return None
     seq = source.sequence
     idx = [list(seq.joint_names).index(n) for n in joints]
     sel = np.ones(len(done), bool)
@@ -871,14 +900,21 @@ def _point_summary(source, names, pts2d, pts3d, done, joints) -> str:
     if source.visible is not None:
         sel &= np.asarray(source.visible, bool)[done]
     frames = done[sel]
+    p2, p3 = np.stack(pts2d)[sel], np.stack(pts3d)[sel]
+    e2 = np.linalg.norm(p2 - (seq.joints2d[frames][:, idx] + 0.5), axis=-1)
+    e3 = np.linalg.norm(p3 - seq.joints3d[frames][:, idx], axis=-1)
+    e3 = np.where(np.isfinite(e3), e3, np.inf)  # no 3D estimate counts as lost
+    return _PointErrors(tuple(names), joints, frames, e2, e3)
+
+
+def _point_table(errors: _PointErrors) -> str:
+    """Median 2D / 3D error of each point (Markdown)."""
     lines = ["| point | joint | median 2D error px | median 3D error mm |", "|---|---|---:|---:|"]
-    for k, name in enumerate(names):
-        e2 = np.linalg.norm(pts2d[sel, k] - (seq.joints2d[frames][:, idx[k]] + 0.5), axis=-1)
-        e3 = np.linalg.norm(pts3d[sel, k] - seq.joints3d[frames][:, idx[k]], axis=-1)
-        e3 = np.where(np.isfinite(e3), e3, np.inf)  # no 3D estimate counts as lost
+    for k, name in enumerate(errors.names):
+        e2, e3 = errors.err2d[:, k], errors.err3d[:, k]
         med2 = float(np.median(e2)) if e2.size else float("nan")
         med3 = float(np.median(e3)) if e3.size else float("nan")
-        lines.append(f"| {name} | {joints[k]} | {med2:.1f} | {med3:.1f} |")
+        lines.append(f"| {name} | {errors.joints[k]} | {med2:.1f} | {med3:.1f} |")
     return "\n".join(lines)
 
 

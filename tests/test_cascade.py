@@ -286,8 +286,15 @@ def test_cli_points_writes_joints_and_errors(tmp_path, capsys):
     auto = tmp_path / "auto.csv"
     argv = ["walk_towards", "--points", "auto", "--model", "rgbd", "--background", "empty"]
     argv += ["--particles", "64", "--point-particles", "32", "--max-frames", "3"]
-    assert main([*argv, "--out", str(auto), "--no-progress"]) == 0
+    plot = tmp_path / "auto.png"
+    assert main([*argv, "--out", str(auto), "--plot", str(plot), "--no-progress"]) == 0
     captured = capsys.readouterr()
+    # --plot: per-frame IoU / ESS, success plot and the points' 3D errors: three panels,
+    # the last with one legend line per point.
+    import cv2
+
+    img = cv2.imread(str(plot))
+    assert img is not None and img.shape[0] > 3 * 360 + 5 * 16
     assert "--points auto: head " in captured.err and "foot_b" in captured.err
     # Scored against the joints the points stand for: walking towards the camera, his
     # right hand is "a" (image left).
