@@ -598,10 +598,16 @@ def figure(results: dict, path: Path) -> None:
     charts.save_png(np.concatenate(panels), path)
 
 
+def redraw_figure(out: str | None, name: str, draw) -> None:
+    """``--figure-only``: ``draw(results, png path)`` from the JSON at the results stem
+    ``out`` (default ``results/<name>``); shared with ``bench_rgbd``."""
+    stem = Path(out) if out else Path(__file__).parent / "results" / name
+    draw(json.loads(stem.with_suffix(".json").read_text()), stem.with_suffix(".png"))
+    print(f"wrote {stem.with_suffix('.png')}")
+
+
 if __name__ == "__main__":
     if ARGS.figure_only:
-        stem = Path(ARGS.out) if ARGS.out else Path(__file__).parent / "results" / "bench_colour"
-        figure(json.loads(stem.with_suffix(".json").read_text()), stem.with_suffix(".png"))
-        print(f"wrote {stem.with_suffix('.png')}")
+        redraw_figure(ARGS.out, "bench_colour", figure)
     else:
         main(ARGS)

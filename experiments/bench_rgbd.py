@@ -294,8 +294,6 @@ def figure(results: dict, path: Path) -> None:
 
 if __name__ == "__main__":
     if ARGS.figure_only:
-        stem = Path(ARGS.out) if ARGS.out else Path(__file__).parent / "results" / "bench_rgbd"
-        figure(json.loads(stem.with_suffix(".json").read_text()), stem.with_suffix(".png"))
-        print(f"wrote {stem.with_suffix('.png')}")
+        bench_colour.redraw_figure(ARGS.out, "bench_rgbd", figure)
     else:
         main(ARGS)

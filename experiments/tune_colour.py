@@ -72,9 +72,7 @@ def main() -> None:
     ap.add_argument("--figure-only", action="store_true", help="redraw the figure from --out")
     args = ap.parse_args()
     if args.figure_only:
-        out = Path(args.out)
-        figure(json.loads(out.read_text()), out.with_suffix(".png"))
-        print(f"wrote {out.with_suffix('.png')}")
+        redraw_figure(args.out, TITLE)
         return
 
     names = ct.WALKING[:2] if args.quick else ct.WALKING
@@ -149,19 +147,33 @@ def main() -> None:
             print(label, when, json.dumps(run_res[when]), flush=True)
         res["runs"][label] = run_res
         # Written after each start: an interrupted run keeps the finished ones.
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(res, indent=1))
-        out.with_suffix(".md").write_text(_markdown(res))
-        figure(res, out.with_suffix(".png"))
-        print(f"wrote {out}, {out.with_suffix('.md')} and {out.with_suffix('.png')}", flush=True)
+        write_results(res, args.out, _markdown(res), TITLE)
 
 
-def figure(res: dict, path: Path) -> None:
+TITLE = "Gradient tuning of the colour likelihood (training scenes)"
+
+
+def write_results(res: dict, out: str | Path, markdown: str, title: str) -> None:
+    """A tuning experiment's JSON, Markdown and loss-curve figure (also ``tune_rgbd``)."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1))
+    out.with_suffix(".md").write_text(markdown)
+    figure(res, out.with_suffix(".png"), title)
+    print(f"wrote {out}, {out.with_suffix('.md')} and {out.with_suffix('.png')}", flush=True)
+
+
+def figure(res: dict, path: Path, title: str) -> None:
     """Loss curves of every finished start (``tuning.history_chart``)."""
     runs = {label: r["history"] for label, r in res["runs"].items()}
-    title = "Gradient tuning of the colour likelihood (training scenes)"
     charts.save_png(tuning.history_chart(runs, title=title), path)
+
+
+def redraw_figure(out: str | Path, title: str) -> None:
+    """``--figure-only``: the figure again from the JSON at ``out``."""
+    out = Path(out)
+    figure(json.loads(out.read_text()), out.with_suffix(".png"), title)
+    print(f"wrote {out.with_suffix('.png')}")
 
 
 def _markdown(res: dict) -> str:

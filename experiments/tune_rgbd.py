@@ -40,8 +40,9 @@ import optax
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import occlusion_tables as ot  # noqa: E402
+import tune_colour  # noqa: E402
 
-from cpf_jax import charts, tuning  # noqa: E402
+from cpf_jax import tuning  # noqa: E402
 from cpf_jax.rgbd import (  # noqa: E402
     PARAM_CONSTRAINTS,
     build_rgbd_filter,
@@ -165,9 +166,7 @@ def main() -> None:
     ap.add_argument("--figure-only", action="store_true", help="redraw the figure from --out")
     args = ap.parse_args()
     if args.figure_only:
-        out = Path(args.out)
-        figure(json.loads(out.read_text()), out.with_suffix(".png"))
-        print(f"wrote {out.with_suffix('.png')}")
+        tune_colour.redraw_figure(args.out, TITLE)
         return
     scenes = TRAIN_SCENES[:1] if args.quick else TRAIN_SCENES
     steps = 2 if args.quick else args.steps
@@ -234,19 +233,10 @@ def main() -> None:
         }
         print(label, json.dumps(res["runs"][label]["held_out_after"]), flush=True)
         # Written after each setting: an interrupted run keeps the finished ones.
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(res, indent=1))
-        out.with_suffix(".md").write_text(_markdown(res))
-        figure(res, out.with_suffix(".png"))
-        print(f"wrote {out}, {out.with_suffix('.md')} and {out.with_suffix('.png')}", flush=True)
+        tune_colour.write_results(res, args.out, _markdown(res), TITLE)
 
 
-def figure(res: dict, path: Path) -> None:
-    """Loss curves of every finished start (``tuning.history_chart``)."""
-    runs = {label: r["history"] for label, r in res["runs"].items()}
-    title = "Gradient tuning of the grid-occlusion likelihood (synthetic occlusion scenes)"
-    charts.save_png(tuning.history_chart(runs, title=title), path)
+TITLE = "Gradient tuning of the grid-occlusion likelihood (synthetic occlusion scenes)"
 
 
 def _row(label: str, values: dict, names, held: dict) -> str:
