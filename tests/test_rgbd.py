@@ -473,9 +473,10 @@ def test_depth_templates_follow_a_target_walking_away():
     params = default_rgbd_params(cfg)
     box = jnp.asarray(_gt(frames[0][2]))
     lags = {}
+    run = jax.jit(lambda k, p, fr: track(filt, p, k, fr, box, bg))  # one compile for both
     for rate in (0.2, 0.0):
         p = params._replace(depth_velocity_rate=jnp.float32(rate))
-        state, _ = jax.jit(lambda k, p=p: track(filt, p, k, fr, box, bg))(jax.random.PRNGKey(0))
+        state, _ = run(jax.random.PRNGKey(0), p, fr)
         tpl = np.asarray(state.depth_template)
         lags[rate] = float(np.max(np.abs(tpl - z_true[-1])))
         if rate > 0:
@@ -514,8 +515,10 @@ def test_velocity_fade_finds_a_target_that_turns_back_while_hidden(toy):
     cfg = _config("grid-occlusion")
     filt = build_rgbd_filter(cfg)
     params = default_rgbd_params(cfg)
+    # lax.map over the keys, not vmap: the filter's lax.cond branches stay branches
+    # (vmap runs both), 4x faster here; vmap itself is tested in test_scan_vmap_*.
     run = jax.jit(
-        jax.vmap(lambda k, p: track_boxes(filt, p, k, frames, gt[0], bg), in_axes=(0, None))
+        lambda ks, p, fr, b: jax.lax.map(lambda k: track_boxes(filt, p, k, fr, b, bg), ks)
     )
     keys = jax.random.split(jax.random.PRNGKey(0), 6)
     after = np.arange(T) >= 66
@@ -528,7 +531,7 @@ def test_velocity_fade_finds_a_target_that_turns_back_while_hidden(toy):
         ),
     }
     for name, p in variants.items():
-        boxes, lost = (np.asarray(a) for a in run(keys, p))
+        boxes, lost = (np.asarray(a) for a in run(keys, p, frames, jnp.asarray(gt[0])))
         rates[name] = np.mean(
             [
                 summarise(boxes[i][after], gt[after], np.ones(after.sum(), bool), lost[i][after])[

@@ -305,9 +305,12 @@ def _success(jumps, variant: str, detector_fraction: float) -> float:
     filt = build_rgbd_filter(cfg)
     params = default_rgbd_params(cfg)
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    # lax.map, not vmap, over the keys: the filter's lax.cond branches stay branches.
     boxes, lost = jax.jit(
-        jax.vmap(lambda k: track_boxes(filt, params, k, frames, jnp.asarray(gt[0]), bg))
-    )(keys)
+        lambda ks, fr: jax.lax.map(
+            lambda k: track_boxes(filt, params, k, fr, jnp.asarray(gt[0]), bg), ks
+        )
+    )(keys, frames)
     vis = np.ones(len(gt), bool)
     scores = [
         summarise(np.asarray(b), gt, vis, np.asarray(lo))["success_rate"]
