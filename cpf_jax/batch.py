@@ -14,8 +14,9 @@ Usage::
 along the leading axis of the pytree ``batched``. The items are split into equal
 blocks, one per device of a one-axis mesh (``batch_mesh``, every device by default),
 with ``jax.shard_map``; the ``shared`` arguments are replicated. Within a device the
-items run one after another under ``lax.map`` (``inner="map"``, the default: the
-filters' ``lax.cond`` branches stay real branches and memory stays that of one item)
+items run one after another under ``lax.map`` (``inner="map"``, the default: memory
+stays that of one item, and every ``lax.cond`` stays a real branch; the histogram
+kernel's fallback does so under ``vmap`` too, ``kernels.histogram.batch_all``)
 or all at once under ``vmap`` (``inner="vmap"``: one batched program, the better
 choice on a GPU when a block fits in memory). A batch that does not divide evenly is
 padded with copies of its last item, and the padding is cut from the result. The

@@ -260,8 +260,9 @@ def make_loss(run: Callable, constraints: NamedTuple, keys: int = 1) -> Callable
 
         def one(xs):
             seq, ks = xs
-            # lax.map, not vmap, over seeds too: under vmap the histogram kernels'
-            # lax.cond (windowed fast path or whole-frame fallback) runs both branches.
+            # lax.map, not vmap, over seeds too: memory stays that of one run (the
+            # backward pass keeps every step's residuals), and the filters' other
+            # lax.conds (resampling, lost-target draws) stay branches.
             per_key = jax.lax.map(lambda k: diou_loss(run(p, k, seq), seq.boxes, seq.visible), ks)
             return jnp.mean(per_key)
 

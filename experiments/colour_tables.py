@@ -90,8 +90,8 @@ def _runner(config: ColourConfig):
     """One jitted batch runner per static config: (params, keys, frames, box) -> boxes."""
     filt = build_colour_filter(config)
 
-    # lax.map (not vmap) over filter seeds keeps the histogram kernel's lax.cond
-    # a real branch, so only the windowed path runs.
+    # lax.map (not vmap) over filter seeds: the tables were made this way (vmap now
+    # runs the same branches, but its per-key floating-point results differ).
     def run(params, keys, frames, box):
         return jax.lax.map(lambda k: track_boxes(filt, params, k, frames, box), keys)
 

@@ -299,6 +299,45 @@ def test_uses_window_is_the_path_rect_reduce_takes(frames):
     assert list(np.asarray(got)) == [True, False]
 
 
+def test_batch_all_is_one_flag_for_the_whole_batch():
+    flags = jnp.asarray([True, False, True])
+    assert bool(H.batch_all(jnp.asarray(True))) and not bool(H.batch_all(jnp.asarray(False)))
+    # Under vmap the flag is no longer batched: it is the AND over the members (which a
+    # mapped output then broadcasts), under jit and nested vmap too.
+    np.testing.assert_array_equal(jax.vmap(H.batch_all)(flags), [False] * 3)
+    np.testing.assert_array_equal(jax.jit(jax.vmap(H.batch_all))(flags[::2]), [True] * 2)
+    nested = jax.vmap(jax.vmap(H.batch_all))(jnp.stack([flags, flags[::-1]]))
+    np.testing.assert_array_equal(nested, np.zeros((2, 3), bool))
+
+    # As a cond predicate it keeps gradients through the branch taken.
+    def f(x):
+        return lax_cond(H.batch_all(x > -1.0), x)
+
+    grads = jax.jit(jax.vmap(jax.grad(f)))(jnp.asarray([0.5, 2.0]))
+    np.testing.assert_allclose(grads, 2 * np.cos(2 * np.asarray([0.5, 2.0])), rtol=1e-6)
+
+
+def lax_cond(pred, x):
+    return jax.lax.cond(pred, lambda v: jnp.sin(2 * v), lambda v: v, x)
+
+
+def test_vmap_keeps_the_fallback_a_branch_and_stays_exact(frames):
+    # A batch of clouds (filter keys, say): one member leaves the window. Every member
+    # is still counted exactly (the batch takes the exact fallback), and the vmapped
+    # program holds a real conditional, not a select that would run both paths for
+    # every member (4x slower filters under vmap).
+    _, hsvs, bins = frames
+    fits = _cloud_rects(1, n=17)[1]
+    leaves = np.concatenate([_cloud_rects(4, n=16)[1], [[0, 100, FW, 140]]])
+    batched = jax.jit(jax.vmap(_fast, in_axes=(None, 0)))
+    for clouds in (np.stack([fits, fits + 3]), np.stack([fits, leaves])):
+        got = np.asarray(batched(bins[0], clouds))
+        for g, r in zip(got, clouds, strict=True):
+            np.testing.assert_array_equal(g, _ref_hists(hsvs[0], r))
+    text = batched.lower(bins[0], np.stack([fits, leaves])).as_text()
+    assert "stablehlo.case" in text or "stablehlo.if" in text
+
+
 def test_uint16_limit_falls_back_and_int32_table_stays_fast(frames):
     _, hsvs, bins = frames
     # 100 x 96 = 9,600 px fits uint16; make the window big and a rect of >= 65,536 px.

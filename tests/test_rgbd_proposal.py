@@ -305,7 +305,7 @@ def _success(jumps, variant: str, detector_fraction: float) -> float:
     filt = build_rgbd_filter(cfg)
     params = default_rgbd_params(cfg)
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    # lax.map, not vmap, over the keys: the filter's lax.cond branches stay branches.
+    # lax.map over the keys (vmap is tested in test_rgbd.py).
     boxes, lost = jax.jit(
         lambda ks, fr: jax.lax.map(
             lambda k: track_boxes(filt, params, k, fr, jnp.asarray(gt[0]), bg), ks
