@@ -246,6 +246,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="--model rgb: per-bin weights of the centre-surround term (default linear)",
     )
     p.add_argument(
+        "--unseen",
+        choices=("background", "neutral"),
+        default=None,
+        help="--model rgb, linear contrast: colours seen neither in the first box nor "
+        "around it count as background (default) or neutral",
+    )
+    p.add_argument(
         "--layout",
         default=None,
         help="--model rgb: layout term on a RxC grid, e.g. 12x3 (default off)",
@@ -409,6 +416,10 @@ def _track(args: argparse.Namespace, source) -> int:
     colour_kw = {}
     if args.contrast is not None:
         colour_kw["contrast"] = args.contrast
+    if args.unseen is not None:
+        if args.contrast == "mixture":
+            raise UsageError("--unseen applies to the linear contrast, not --contrast mixture")
+        colour_kw["unseen"] = args.unseen
     if args.layout is not None:
         colour_kw["layout"] = parse_layout(args.layout)
     if args.layout_feature is not None:
@@ -421,7 +432,9 @@ def _track(args: argparse.Namespace, source) -> int:
     if args.layout_weight is not None and not args.layout_weight >= 0:
         raise UsageError(f"--layout-weight must be >= 0, got {args.layout_weight}")
     if (colour_kw or args.layout_weight is not None) and args.model != "rgb":
-        raise UsageError(f"--contrast and --layout* apply to --model rgb, not {args.model!r}")
+        raise UsageError(
+            f"--contrast, --unseen and --layout* apply to --model rgb, not {args.model!r}"
+        )
     frame_hw = (source.size[1], source.size[0])
     background = None if args.model == "rgb" else scene  # the colour layer has none
     if args.model == "rgb":

@@ -233,6 +233,9 @@ __all__ = [
 
 ESTIMATORS = ("mean", "map", "robust")
 CONTRASTS = ("mixture", "linear")
+#: What the linear contrast weights make of a colour seen neither in the initial box nor
+#: in its ring (``ColourConfig.unseen``).
+UNSEEN = ("background", "neutral")
 
 # Default colour model: 8 x 8 H-S bins for chromatic pixels + 8 value bins for
 # black/grey/white ones (72 bins). (8, 8) is the thesis's pure H-S histogram.
@@ -304,6 +307,11 @@ class ColourConfig:
     # (``mixture_weights``) the log-likelihood ratio of a box pixel under a
     # person-plus-background mixture vs the background.
     contrast: str = "linear"
+    # Linear contrast weights of colours seen neither in the initial box nor in its
+    # ring (``contrast_weights``): "background" (default; weight ``-threshold``) or
+    # "neutral" (weight 0: no evidence either way). Measurements in the module
+    # docstring.
+    unseen: str = "background"
     # Layout term (``layout_vectors``): the box cut into (rows, cols) cells, the
     # normalised cross-correlation of the cells' mean luminance with the initial
     # box's. Colour histograms are blind to where colours sit inside the box; this
@@ -348,6 +356,10 @@ class ColourConfig:
             raise ValueError(f"collapse_ratio must be in [0, 1), got {self.collapse_ratio}")
         if self.contrast not in CONTRASTS:
             raise ValueError(f"contrast must be one of {CONTRASTS}, got {self.contrast!r}")
+        if self.unseen not in UNSEEN:
+            raise ValueError(f"unseen must be one of {UNSEEN}, got {self.unseen!r}")
+        if self.unseen == "neutral" and self.contrast != "linear":
+            raise ValueError("unseen='neutral' applies to contrast='linear'")
         if self.layout is not None and (len(self.layout) != 2 or min(self.layout) < 1):
             raise ValueError(f"layout must be None or (rows, cols) >= 1, got {self.layout}")
         if self.layout_feature not in LAYOUT_FEATURES:
@@ -541,25 +553,34 @@ def contrast_weights(
     bins: tuple[int, ...] = COLOUR_BINS,
     margin: float = 0.5,
     threshold: float | Array = 0.4,
+    unseen: str = "background",
 ) -> Array:
     """Linear per-bin contrast weights ``[B] = P(object | bin) - threshold`` from a box and
     its surround (``ColourConfig.contrast = "linear"``).
 
-    ``P(object | b) = n_in(b) / (n_in(b) + n_ring(b) + k)`` with pixel counts
-    inside the box and in the ring around it (the box grown by ``margin`` of its
-    size per side, minus the box), as in distractor-aware colour tracking
-    (Possegger et al., CVPR 2015); ``k`` (1 % of the box's pixels) makes
-    colours seen in neither region count as background, so a box is never
-    rewarded for growing into colours the template has not seen. Bins typical
+    ``P(object | b) = (n_in(b) + k p0) / (n_in(b) + n_ring(b) + k)`` with pixel
+    counts inside the box and in the ring around it (the box grown by ``margin``
+    of its size per side, minus the box), as in distractor-aware colour tracking
+    (Possegger et al., CVPR 2015), and a prior of ``k`` pixels (1 % of the box's)
+    at ``p0``. ``unseen = "background"``: ``p0 = 0``, colours seen in neither
+    region count as background (weight ``-threshold``), so a box is never
+    rewarded for growing into colours the template has not seen, and is
+    penalised for it. ``"neutral"``: ``p0 = threshold``, such colours weigh 0
+    (the contrast score is normalised by the previous estimate's area, so a box
+    grown over them neither gains nor loses; the histogram term still prefers
+    the colours it knows). Bins typical
     of the person score ``~ 1 - threshold``, the surrounding background
     ``~ -threshold``; the sum of a box's weights peaks at the person's extent.
     Its weakness: background colours that also fill the initial box (the floor
     between the legs) get ``P(object | b)`` near the threshold, a weight near 0,
     and a box that grows over them loses nothing.
     """
+    if unseen not in UNSEEN:
+        raise ValueError(f"unseen must be one of {UNSEEN}, got {unseen!r}")
     inside, ring = _box_and_ring_counts(frame, box_xywh, bins, margin)
     k = 0.01 * jnp.maximum(jnp.sum(inside), 1.0)
-    return inside / (inside + ring + k) - threshold
+    prior = k * threshold if unseen == "neutral" else 0.0
+    return (inside + prior) / (inside + ring + k) - threshold
 
 
 #: Bound of the "mixture" weights (log-likelihood ratios), so that integer box sums
@@ -780,7 +801,12 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             )
         else:
             contrast = contrast_weights(
-                frame, box, config.bins, config.surround_margin, params.contrast_threshold
+                frame,
+                box,
+                config.bins,
+                config.surround_margin,
+                params.contrast_threshold,
+                config.unseen,
             )
         layout = jnp.zeros((1,), jnp.float32)
         if config.layout is not None:

@@ -71,7 +71,7 @@ def test_init_override_and_max_frames(folder, tmp_path):
     np.testing.assert_allclose(res["boxes"][0], [100, 80, 60, 190])
 
 
-def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
+def test_optional_colour_terms_from_the_command_line(folder, tmp_path, monkeypatch):
     out = tmp_path / "t.csv"
     argv = [str(folder), "--init", "100,80,60,190", "--max-frames", "3", "--out", str(out)]
     argv += ["--particles", "64", "--no-progress", "--contrast", "mixture", "--layout", "6x2"]
@@ -80,6 +80,21 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
     assert len(res["frame"]) == 3 and np.isfinite(res["boxes"]).all()
     argv += ["--layout-feature", "gradient", "--layout-weight", "20", "--layout-mirror"]
     assert main(argv) == 0
+    assert np.isfinite(read_results(out)["boxes"]).all()
+
+    # --unseen reaches the filter's config (the linear contrast's prior on unseen colours)
+    import cpf_jax.colour as colour
+
+    configs, original = [], colour.build_colour_filter
+
+    def build(config):
+        configs.append(config)
+        return original(config)
+
+    monkeypatch.setattr(colour, "build_colour_filter", build)
+    argv = argv[:10] + ["--layout", "6x2", "--layout-mirror", "--unseen", "neutral"]
+    assert main(argv) == 0
+    assert configs[-1].unseen == "neutral" and configs[-1].layout_mirror
     assert np.isfinite(read_results(out)["boxes"]).all()
 
 
@@ -98,6 +113,8 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path):
         (["{folder}", "--layout-feature", "gradient"], "need --layout"),
         (["{folder}", "--layout-mirror"], "need --layout"),
         (["{folder}", "--model", "rgbd", "--contrast", "mixture"], "--model rgb"),
+        (["{folder}", "--model", "rgbd", "--unseen", "neutral"], "--model rgb"),
+        (["{folder}", "--contrast", "mixture", "--unseen", "neutral"], "linear contrast"),
         (["{folder}", "--model", "rgbd", "--background", "empty"], "empty-scene"),
         (["{folder}", "--plot", "run.jpg"], "--plot"),
     ],

@@ -47,8 +47,9 @@ def _frame(seed: int = 0, x: int = 60) -> tuple[Frame, np.ndarray]:
     return frame, np.array([x, 35, 30, 50], np.float32)
 
 
-def _mixture_reference(img: np.ndarray, box, margin: float, fill: float) -> np.ndarray:
-    """Plain NumPy: bin counts in the box and in the ring by slicing, then the LLR."""
+def _box_and_ring(img: np.ndarray, box, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Plain NumPy: bin counts in the box and in the ring around it, by slicing (for
+    boxes whose ring the frame does not cut off)."""
     idx = np.asarray(bin_index(jnp.asarray(img), COLOUR_BINS))
     n = n_bins_of(COLOUR_BINS)
     x, y, w, h = box
@@ -60,7 +61,13 @@ def _mixture_reference(img: np.ndarray, box, margin: float, fill: float) -> np.n
 
     inside = counts(x, y, x + w, y + h)
     grown = counts(x - margin * w, y - margin * h, x + w + margin * w, y + h + margin * h)
-    ring = grown - inside
+    return inside, grown - inside
+
+
+def _mixture_reference(img: np.ndarray, box, margin: float, fill: float) -> np.ndarray:
+    """Plain NumPy: bin counts in the box and in the ring by slicing, then the LLR."""
+    inside, ring = _box_and_ring(img, box, margin)
+    n = inside.shape[0]
     p_bg = ring + 1e-3 * max(ring.sum(), 1.0) / n + 1e-6
     p_bg /= p_bg.sum()
     p_obj = np.maximum(inside / inside.sum() - (1 - fill) * p_bg, 0.0) + 1e-6
@@ -105,6 +112,50 @@ def test_mixture_weights_penalise_background_inside_the_initial_box():
 
     tight, wide = counts(60, 35, 90, 85), counts(50, 30, 100, 95)
     assert tight @ mix > wide @ mix
+
+
+@pytest.mark.parametrize("unseen", ["background", "neutral"])
+def test_linear_contrast_weights_match_numpy_under_jit_and_vmap(unseen):
+    """``P(object | bin) - threshold`` with a prior of k = 1 % of the box's pixels at 0
+    ("background") or at the threshold ("neutral"): colours seen neither in the box nor
+    in its ring weigh -threshold or 0."""
+    frame, box = _frame()
+    boxes = jnp.stack([box, box + np.array([-20, 10, 0, 0], np.float32)])
+    thr = 0.3
+    run = jax.jit(
+        jax.vmap(lambda b: contrast_weights(frame, b, COLOUR_BINS, 0.5, thr, unseen=unseen))
+    )
+    got = np.asarray(run(boxes))
+    for k in range(2):
+        inside, ring = _box_and_ring(np.asarray(frame.colour), np.asarray(boxes[k]), 0.5)
+        prior = 0.01 * max(inside.sum(), 1.0)
+        p0 = thr if unseen == "neutral" else 0.0
+        want = (inside + prior * p0) / (inside + ring + prior) - thr
+        np.testing.assert_allclose(got[k], want, atol=1e-5)
+        never = (inside + ring) == 0
+        assert never.sum() > 30  # most of the 72 bins occur in neither region
+        unseen_weight = -thr if unseen == "background" else 0.0
+        np.testing.assert_allclose(got[k][never], unseen_weight, atol=1e-6)
+
+
+def test_neutral_unseen_colours_do_not_penalise_a_box_grown_over_them():
+    """A white stripe (seen in neither the first box nor its ring) next to the person: a
+    box grown over it loses contrast score with unseen colours as background, and keeps
+    it with them neutral."""
+    frame, box = _frame()
+    img = np.asarray(frame.colour).copy()
+    img[35:85, 90:100] = 255  # beside the person, outside the first box ...
+    later = Frame(jnp.asarray(img), frame.depth)
+    idx = np.asarray(bin_index(later.colour, COLOUR_BINS))
+    tight, grown = idx[35:85, 60:90], idx[35:85, 60:100]
+    for unseen, loses in (("background", True), ("neutral", False)):
+        w = np.asarray(
+            contrast_weights(frame, box, threshold=0.3, unseen=unseen)
+        )  # ... and its ring
+        assert abs(w[idx[40, 95]] - (-0.3 if loses else 0.0)) < 1e-6
+        assert (w[grown].sum() < w[tight].sum() - 100) == loses, unseen
+    with pytest.raises(ValueError, match="unseen"):
+        contrast_weights(frame, box, unseen="ignore")
 
 
 def test_luminance_matches_opencv():
@@ -306,6 +357,8 @@ def test_config_rejects_bad_terms():
         ColourConfig(layout=(0, 3))
     with pytest.raises(ValueError, match="layout_feature"):
         ColourConfig(layout=(6, 2), layout_feature="hog")
+    with pytest.raises(ValueError, match="unseen"):
+        ColourConfig(unseen="ignore")
 
 
 def test_contrast_weights_do_not_depend_on_how_much_ring_the_frame_cuts_off():
