@@ -28,10 +28,11 @@ bench: $(STAMP)
 	$(BIN)/python experiments/bench_rgbd.py
 	$(BIN)/python experiments/bench_batch.py
 
-# Every table and figure in experiments/results (about 2 hours on a 2-core CPU; the parts
+# Every table and figure in experiments/results (about 3 hours on a 2-core CPU; the parts
 # on ../shared/data skip with a message when it is absent). Each script also runs alone.
 experiments: $(STAMP)
 	$(BIN)/python experiments/colour_tables.py
+	$(BIN)/python experiments/crossing_terms.py --train layout+update+mirror
 	$(BIN)/python experiments/occlusion_tables.py
 	$(BIN)/python experiments/depth_points.py
 	$(BIN)/python experiments/depth_real.py
