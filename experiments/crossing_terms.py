@@ -65,13 +65,19 @@ def variants() -> dict[str, tuple[ColourConfig, object]]:
     }
 
 
-def train_scores(config: ColourConfig, params) -> dict:
-    """Training-scene scores of one config (sequences dropped after each scenario:
-    keeping every scene seed's frames at once ran out of 24 GB)."""
+def _rates(names, config: ColourConfig, params) -> dict[str, float]:
+    """Mean training-scene success rate per scenario (each scenario's sequences are
+    dropped once scored: keeping every scene seed's frames at once ran out of 24 GB)."""
     out = {}
-    for name in ct.WALKING + ct.LOOKALIKE:
+    for name in names:
         out[name] = float(np.mean(ct.success_rates(name, TRAIN_SEEDS, TRAIN_KEYS, config, params)))
         ct._sequence.cache_clear()
+    return out
+
+
+def train_scores(config: ColourConfig, params) -> dict:
+    """Training-scene scores of one config."""
+    out = _rates(ct.WALKING + ct.LOOKALIKE, config, params)
     walking = [out[n] for n in ct.WALKING]
     res = {
         "walking_mean": float(np.mean(walking)),
@@ -80,13 +86,7 @@ def train_scores(config: ColourConfig, params) -> dict:
     }
     for label, hier in (("ar1_n50_hierarchical", True), ("ar1_n50_plain", False)):
         cfg = dataclasses.replace(config, n_particles=50, model="ar1", hierarchical=hier)
-        rates = []
-        for name in ct.WALKING:
-            rates.append(
-                float(np.mean(ct.success_rates(name, TRAIN_SEEDS, TRAIN_KEYS, cfg, params)))
-            )
-            ct._sequence.cache_clear()
-        res[label] = float(np.mean(rates))
+        res[label] = float(np.mean(list(_rates(ct.WALKING, cfg, params).values())))
     ct._runner.cache_clear()
     jax.clear_caches()
     return res
