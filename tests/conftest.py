@@ -3,6 +3,13 @@
 JAX's persistent compilation cache is switched on for the test session only
 (never by the library): many tests build filters with identical configs, and
 the cache turns their repeated XLA compiles into look-ups.
+
+The suite's time is mostly XLA compiling (about 250 programs, each jitted filter a
+few thousand operations), so the tests compile with cheaper XLA CPU settings
+(``TEST_XLA_FLAGS``: LLVM optimisation level 1, loop fusions emitted the older way).
+The same jaxprs run; only code generation differs. On the RGB-D toy scan this cut the
+compile from 15-17 s to 10-12 s and made the run 0.6 -> 0.75 s. Set
+``CPF_TEST_XLA_DEFAULTS=1`` to test with XLA's defaults (what a user gets).
 """
 
 from __future__ import annotations
@@ -10,8 +17,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import jax
-import numpy as np
+#: XLA CPU flags for the test session (before JAX starts; appended to the user's own).
+TEST_XLA_FLAGS = "--xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
+_FLAGS = os.environ.get("XLA_FLAGS", "")
+if os.environ.get("CPF_TEST_XLA_DEFAULTS", "") in ("", "0") and TEST_XLA_FLAGS not in _FLAGS:
+    os.environ["XLA_FLAGS"] = f"{_FLAGS} {TEST_XLA_FLAGS}".strip()
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
