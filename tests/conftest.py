@@ -25,7 +25,7 @@ if os.environ.get("CPF_TEST_XLA_DEFAULTS", "") in ("", "0") and TEST_XLA_FLAGS n
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-import pytest
+import pytest  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"

@@ -120,8 +120,12 @@ def test_vmap_over_seeds_and_over_sigma(seq):
     assert by_sigma.shape == (3, 8, 4) and np.isfinite(np.asarray(by_sigma)).all()
 
 
-@pytest.mark.parametrize("model", ["ar1_fixed", "ar2", "ar2_fixed", "random_walk"])
-@pytest.mark.parametrize("estimator", ["map", "robust"])
+# Each model with one of the two non-default estimators (both estimators twice): the
+# model and the estimator are independent parts of the step, and every pair is a compile.
+@pytest.mark.parametrize(
+    "model, estimator",
+    [("ar1_fixed", "map"), ("ar2", "robust"), ("ar2_fixed", "robust"), ("random_walk", "map")],
+)
 def test_every_model_and_estimator_runs(seq, model, estimator):
     frames, gt = seq
     short = jax.tree_util.tree_map(lambda x: x[:6], frames)
