@@ -10,6 +10,7 @@ import pytest
 from cpf_jax.colour import (
     CONTRAST_SCALE,
     ColourConfig,
+    _estimate,
     bin_index,
     box_parts,
     build_colour_filter,
@@ -304,3 +305,50 @@ def test_collapsed_box_counts_as_lost_and_redraws_full_size_particles(seq):
     s2 = s2._replace(particles=tiny, previous=tiny)
     _, info2 = jax.jit(no_check.step)(PARAMS, jax.random.key(1), s2, frame0)
     assert not bool(info2.lost)
+
+
+def _estimate_reference(estimator, particles, lw, radius):
+    """The three estimates with NumPy loops: weighted mean (thesis 3.10), the heaviest
+    particle, and the weighted mean of the particles whose centre is within ``radius``
+    x the heaviest particle's size of its centre (per axis)."""
+    w = np.exp(lw.astype(np.float64))
+    if estimator == "mean":
+        return (w[:, None] * particles).sum(0)
+    best = particles[np.argmax(lw)]
+    if estimator == "map":
+        return best
+    num, den = np.zeros(particles.shape[1]), 0.0
+    for p, wi in zip(particles, w, strict=True):
+        if abs(p[0] - best[0]) <= radius * best[4] and abs(p[1] - best[1]) <= radius * best[5]:
+            num, den = num + wi * p, den + wi
+    return num / den if den > 0 else best
+
+
+@pytest.mark.parametrize("estimator", ["mean", "map", "robust"])
+def test_estimators_match_numpy_under_jit_and_vmap(estimator):
+    rng = np.random.default_rng(7)
+    # Two clusters: the heaviest particle is in the smaller, wider one, so the robust
+    # mean (the part of its cluster within the window) differs from the weighted mean
+    # (both), from the MAP particle and from a window of another size.
+    parts = np.concatenate(
+        [
+            rng.normal([100, 80, 0, 0, 40, 90, 0, 0], [12, 12, 1, 1, 2, 2, 1, 1], (5, 16, 8)),
+            rng.normal([200, 90, 0, 0, 40, 90, 0, 0], [3, 3, 1, 1, 2, 2, 1, 1], (5, 48, 8)),
+        ],
+        axis=1,
+    ).astype(np.float32)
+    logits = rng.normal(0, 0.3, (5, 64))
+    logits[:, 0] += 3.0  # in the small cluster
+    lw = (logits - np.log(np.exp(logits).sum(1, keepdims=True))).astype(np.float32)
+    config = ColourConfig(estimator=estimator)
+    radius = jnp.float32(0.25)
+    one = jax.jit(lambda p, l: _estimate(config, p, l, radius))
+    many = jax.jit(jax.vmap(lambda p, l: _estimate(config, p, l, radius)))(parts, lw)
+    for i in range(len(parts)):
+        ref = _estimate_reference(estimator, parts[i], lw[i], 0.25)
+        np.testing.assert_allclose(one(parts[i], lw[i]), ref, rtol=1e-4, atol=1e-3)
+        np.testing.assert_allclose(many[i], ref, rtol=1e-4, atol=1e-3)
+    if estimator == "robust":  # part of the small cluster: near it, not the mean's
+        assert np.all(np.abs(np.asarray(many)[:, 0] - 100) < 25)
+        wider = [_estimate_reference("robust", parts[i], lw[i], 0.5) for i in range(len(parts))]
+        assert np.abs(np.asarray(many) - np.array(wider))[:, :2].max() > 0.5
