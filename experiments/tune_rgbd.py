@@ -283,7 +283,8 @@ def _markdown(res: dict) -> str:
     lines += [
         "",
         f"IST AUC: the mean over {IST_KEYS} filter keys (`jax.random.split(PRNGKey(1), "
-        f"{IST_KEYS})`; `occlusion_tables.md` reports 4 keys of its own split). Single keys "
+        f"{IST_KEYS})`, vmapped in one program; `occlusion_tables.md` reports "
+        f"{ot.IST_KEYS} keys of its own split). Single keys "
         "range over about 20 points, so differences of a few points are noise.",
         "",
         "Validation loss (defaults / best, the parameters kept):",
