@@ -54,11 +54,12 @@ px wide; its cells took in the people beside him, and when he turned behind anot
 the filter went on with a third man at his old depth. So ``init`` measures the share of
 foreground in the initial box (a ground-truth box, as the colour template's), and every
 Beta mean of the cells, the whole box and the inner border strips is moved by the same
-logit shift, ``fill_adapt * (logit(fill) - logit(mean of the whole-box Beta))``, each
-keeping its concentration ``a + b`` (the outer strips stay as fitted: nothing of a
-person lies outside his tight box). One frame's fill is a noisy measure of a walker's
-(the synthetic walkers' first frames fill 0.36-0.56 of their boxes, their walks 0.33 on
-average; the IST man's first box 0.88, his unoccluded frames 0.69), so a fill within
+logit shift (``beta_fill_shift``: the gap ``logit(fill) - logit(mean of the whole-box
+Beta)`` less a dead zone, times ``fill_adapt``), each keeping its concentration
+``a + b`` (the outer strips stay as fitted: nothing of a person lies outside his tight
+box). One frame's fill is a noisy measure of a walker's (the synthetic walkers' first
+frames fill 0.36-0.56 of their boxes, their whole walks 0.30-0.53; the IST man's first box
+0.88, his unoccluded frames 0.69), so a fill within
 ``fill_deadzone`` logits (1.5 standard deviations of the whole-box Beta's logit) of the
 fitted mean moves nothing and one beyond it moves the means by the excess: on IST the
 whole-box mean goes from 0.31 to 0.73. IST AUC over 16 filter keys
@@ -274,6 +275,9 @@ __all__ = [
     "kronecker_transition",
     "fit_beta",
     "cell_foreground_ratios",
+    "initial_fill",
+    "beta_fill_shift",
+    "fill_adapted",
     "track",
     "track_boxes",
 ]
@@ -614,8 +618,10 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         border_floor=f(-6.0),
         fill_adapt=f(1.0),
         # 1.5 standard deviations of the logit of the whole-box Beta (3.52, 7.89): the
-        # first frames of the synthetic walkers fill 0.36-0.56 of their boxes (mean over
-        # their walks 0.33-0.62, the fitted mean 0.31) and move nothing.
+        # first frames of the synthetic walkers fill 0.36-0.56 of their boxes (their whole
+        # walks 0.30-0.53, the fitted mean 0.31) and move nothing. A background model that
+        # holds the standing walker (a median over walk_towards' own frames) sees 0.06-0.12
+        # and moves the means down by up to 1 logit.
         fill_deadzone=f(1.0),
         log_occluded=f(-10.0),
         occluder_margin=f(400.0),
