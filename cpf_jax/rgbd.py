@@ -977,12 +977,10 @@ def box_log_density(params: RGBDParams, fg_sum: Array, area_sum: Array) -> Array
 
 
 def initial_fill(foreground: Array, box_xywh: Array) -> Array:
-    """Share of foreground pixels in ``box_xywh`` (clipped to the frame; 0 for an empty box)."""
-    height, width = foreground.shape
-    rect = box_ops.xywh_to_rect(jnp.asarray(box_xywh, jnp.float32))[None]
-    count = box_histograms(jnp.where(foreground, 0, -1), rect, 1)[0, 0]
-    area = _clipped_area(rect, width, height)[0]
-    return jnp.where(area > 0, count / jnp.maximum(area, 1.0), 0.0)
+    """Share of foreground pixels in ``box_xywh`` (clipped to the frame; 0 for an empty box):
+    the one-cell ``cell_foreground_ratios`` of one frame."""
+    box = jnp.asarray(box_xywh, jnp.float32)
+    return cell_foreground_ratios(foreground[None], box[None], 1)[0, 0]
 
 
 def beta_fill_shift(params: RGBDParams, fill: Array) -> Array:
