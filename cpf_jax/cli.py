@@ -9,7 +9,12 @@ Observation models (``--model``): ``rgb`` is the colour layer
 are the RGB-D filter's variants (``cpf_jax.rgbd``). Depth is registered to
 colour first when a calibration is in effect: ``--calib FILE``, or the
 folder's own ``calibration.json`` (``cpf_jax.registration`` format). The RGB-D
-models learn a background from ``--background`` frames of the recording.
+models learn a background from ``--background`` frames of the recording: by default
+(``auto``) the median of the frames, among up to 150 evenly spaced ones, with the least
+foreground in front of the farthest surface each pixel shows in a fifth of them (a share
+at most twice the quietest's plus 1 % of the frame; at least 5, at most 25;
+:func:`cpf_jax.kernels.background.quiet_frames`), so that the empty frames of a
+recording whose people come and go make the model.
 
 ``--points`` adds layer 2 (``cpf_jax.cascade``): points on the body (``joints``:
 a synthetic scenario's head, hands and feet; ``auto``: head, hands and feet found
@@ -24,7 +29,8 @@ summary gives each point's median 2D and 3D error.
 Live sources (``realsense[:serial]``, ``kinect2[:serial]``, a RealSense ``.bag``/``.db3``) are
 read once, in order: ``--init`` is required (a box, or ``auto``: the first frame where
 :func:`cpf_jax.detect.find_person` finds someone against the background model),
-``--background N`` takes the stream's first N frames and tracking starts after them;
+``--background N`` takes the stream's first N frames (``auto``: 25) and tracking
+starts after them;
 the run ends with the stream, ``--max-frames`` or Ctrl-C, and the camera is stopped
 however it ends. The Rerun log goes to ``--rrd FILE``,
 a new viewer (``--spawn``) or a running one (``--connect URL``, checked before tracking;
@@ -141,8 +147,19 @@ def check_box(box: np.ndarray, size: tuple[int, int], where: str) -> None:
         )
 
 
+# --background auto: the AUTO_BACKGROUND_FRAMES emptiest of up to AUTO_CANDIDATES evenly
+# spaced frames (a live stream: its first AUTO_BACKGROUND_FRAMES).
+AUTO_BACKGROUND_FRAMES = 25
+AUTO_CANDIDATES = 150
+QUIET_STRIDE = 4  # pixel lattice of the candidates' foreground shares
+
+
 def parse_background(text: str, n_frames: int) -> list[int]:
-    """``"N"`` (N evenly spaced frames) or ``"A:B"`` (frames A..B-1) -> frame indices."""
+    """``"N"`` (N evenly spaced frames) or ``"A:B"`` (frames A..B-1) -> frame indices;
+    ``"auto"``: the candidates of :func:`quiet_background` (up to ``AUTO_CANDIDATES``
+    evenly spaced frames)."""
+    if text == "auto":
+        text = str(AUTO_CANDIDATES)
     try:
         if ":" in text:
             a, b = (int(v) for v in text.split(":"))
@@ -156,7 +173,8 @@ def parse_background(text: str, n_frames: int) -> list[int]:
         frames = None
     if not frames:
         raise UsageError(
-            f"--background expects N >= 1 or A:B with frames inside 0..{n_frames - 1}, got {text!r}"
+            f"--background expects auto, empty, N >= 1 or A:B with frames inside "
+            f"0..{n_frames - 1}, got {text!r}"
         )
     return frames
 
@@ -217,10 +235,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--background",
-        default="25",
-        help="background frames for the RGB-D models: N (evenly spaced over the "
-        "recording, default 25; a live stream's first N), A:B (frames A..B-1, 0-based) or "
-        "'empty' (a synthetic scenario's empty room)",
+        default="auto",
+        help="background frames for the RGB-D models: 'auto' (default: up to 25 frames with "
+        "the least foreground among up to 150 evenly spaced ones; a live stream's first 25), "
+        "N (evenly spaced over the recording; a live stream's first N), A:B (frames A..B-1, "
+        "0-based) or 'empty' (a synthetic scenario's empty room)",
     )
     p.add_argument(
         "--start",
@@ -345,69 +364,18 @@ def _run(args: argparse.Namespace) -> int:
         except OSError as e:
             raise UsageError(f"--plot {args.plot}: cannot create its folder ({e})") from None
 
+    options = _model_options(args)  # a bad option fails before any frame is read
+
     from cpf_jax.io import open_source
 
     source = open_source(args.path)
     with source:  # a camera is stopped, a file closed, however the run ends
-        return _track(args, source)
+        return _track(args, source, options)
 
 
-def _track(args: argparse.Namespace, source) -> int:
-    import jax
-    import jax.numpy as jnp
-
-    from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params
-    from cpf_jax.io import ResultsWriter
-    from cpf_jax.io.base import LiveSource
-    from cpf_jax.metrics import format_summary, summarise
-    from cpf_jax.progress import Progress
-    from cpf_jax.types import Frame
-
-    live = isinstance(source, LiveSource)
-    calib = _calibration(args, source)
-    register = _registrar(calib)
-    auto = args.init is not None and args.init.strip().lower() == "auto"
-    # A background model: the RGB-D models' foreground, and --init auto's person finder.
-    need_bg = args.model != "rgb" or auto
-    if live:
-        start, box, bg_frames, frames = _open_live(args, source, register, need_bg, auto)
-    else:
-        n_frames = len(source)
-
-        def read(i: int) -> Frame:
-            return register(source.read(i), source.names[i])
-
-        start, box = _start_and_box(args, source, n_frames, auto)
-        bg_frames = None
-        if need_bg:
-            if args.background == "empty":
-                empty = source.empty_background()
-                if empty is None:
-                    raise UsageError(
-                        f"--background empty: {source.describe()} has no empty-scene frame "
-                        "(only synthetic scenarios do); give N or A:B"
-                    )
-                bg_frames = [empty]
-            else:
-                bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
-        frames = ((i, read(i)) for i in range(start, n_frames))
-    scene = None  # the background model of the empty scene
-    if bg_frames:
-        from cpf_jax.kernels.background import median_background
-
-        scene = jax.jit(median_background)(
-            np.stack([f.colour for f in bg_frames]), np.stack([f.depth for f in bg_frames])
-        )
-    if auto:
-        box, frames = _find_start(source, frames, scene)
-    frames = itertools.islice(frames, args.max_frames)  # None: to the end
-    try:
-        start, first_frame = next(frames)
-    except StopIteration:
-        raise UsageError(f"{source.describe()}: no frame to track") from None
-    frames = itertools.chain([(start, first_frame)], frames)
-    check_box(box, source.size, source.describe())
-
+def _model_options(args: argparse.Namespace) -> tuple[dict, dict]:
+    """``(config keywords, colour-only keywords)`` of the model options; one error
+    line for a bad or misplaced one (checked before any frame is read)."""
     config_kw = {}
     if args.bins is not None:
         config_kw["bins"] = parse_bins(args.bins)
@@ -435,6 +403,69 @@ def _track(args: argparse.Namespace, source) -> int:
         raise UsageError(
             f"--contrast, --unseen and --layout* apply to --model rgb, not {args.model!r}"
         )
+    return config_kw, colour_kw
+
+
+def _track(args: argparse.Namespace, source, options: tuple[dict, dict]) -> int:
+    import jax
+    import jax.numpy as jnp
+
+    from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params
+    from cpf_jax.io import ResultsWriter
+    from cpf_jax.io.base import LiveSource
+    from cpf_jax.metrics import format_summary, summarise
+    from cpf_jax.progress import Progress
+    from cpf_jax.types import Frame
+
+    live = isinstance(source, LiveSource)
+    bg_note = None  # --background auto: which frames made the background model
+    calib = _calibration(args, source)
+    register = _registrar(calib)
+    auto = args.init is not None and args.init.strip().lower() == "auto"
+    # A background model: the RGB-D models' foreground, and --init auto's person finder.
+    need_bg = args.model != "rgb" or auto
+    if live:
+        start, box, bg_frames, frames = _open_live(args, source, register, need_bg, auto)
+    else:
+        n_frames = len(source)
+
+        def read(i: int) -> Frame:
+            return register(source.read(i), source.names[i])
+
+        start, box = _start_and_box(args, source, n_frames, auto)
+        bg_frames = None
+        if need_bg:
+            if args.background == "empty":
+                empty = source.empty_background()
+                if empty is None:
+                    raise UsageError(
+                        f"--background empty: {source.describe()} has no empty-scene frame "
+                        "(only synthetic scenarios do); give N or A:B"
+                    )
+                bg_frames = [empty]
+            elif args.background == "auto":
+                bg_frames, bg_note = quiet_background(read, parse_background("auto", n_frames))
+            else:
+                bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
+        frames = ((i, read(i)) for i in range(start, n_frames))
+    scene = None  # the background model of the empty scene
+    if bg_frames:
+        from cpf_jax.kernels.background import median_background
+
+        scene = jax.jit(median_background)(
+            np.stack([f.colour for f in bg_frames]), np.stack([f.depth for f in bg_frames])
+        )
+    if auto:
+        box, frames = _find_start(source, frames, scene)
+    frames = itertools.islice(frames, args.max_frames)  # None: to the end
+    try:
+        start, first_frame = next(frames)
+    except StopIteration:
+        raise UsageError(f"{source.describe()}: no frame to track") from None
+    frames = itertools.chain([(start, first_frame)], frames)
+    check_box(box, source.size, source.describe())
+
+    config_kw, colour_kw = options
     frame_hw = (source.size[1], source.size[0])
     background = None if args.model == "rgb" else scene  # the colour layer has none
     if args.model == "rgb":
@@ -604,6 +635,8 @@ def _track(args: argparse.Namespace, source) -> int:
         f"(model {args.model}{', depth registered' if calib is not None else ''}"
         f"{f', {n_points} body points' if cascade is not None else ''})"
     )
+    if bg_note is not None:
+        print(f"note: {bg_note}")
     if n_windowed < n_steps:
         print(
             f"note: {n_steps - n_windowed} of {n_steps} steps counted histograms on the whole "
@@ -779,8 +812,48 @@ def _find_start(source, frames, scene):
     )
 
 
+def quiet_background(read, indices: list[int]) -> tuple[list, str]:
+    """``--background auto``: of the recording frames ``indices`` (``read(i) -> Frame``),
+    those with the least foreground in front of the scene they show, at most
+    ``AUTO_BACKGROUND_FRAMES`` (:func:`cpf_jax.kernels.background.quiet_frames`), and
+    a line naming them for the run's summary. The candidates are kept only on the
+    shares' pixel lattice (every ``QUIET_STRIDE``-th pixel); the chosen frames are read
+    again at full resolution."""
+    import jax
+
+    from cpf_jax.kernels.background import foreground_shares, quiet_frames
+
+    lattice = [read(i) for i in indices]
+    colour = np.stack([np.asarray(f.colour)[::QUIET_STRIDE, ::QUIET_STRIDE] for f in lattice])
+    depth = np.stack([np.asarray(f.depth)[::QUIET_STRIDE, ::QUIET_STRIDE] for f in lattice])
+    del lattice
+    share = jax.jit(foreground_shares, static_argnames="stride")(colour, depth, stride=1)
+    n_max = min(AUTO_BACKGROUND_FRAMES, len(indices))
+    picked, count = quiet_frames(share, n_max, min(5, n_max))
+    chosen = [indices[int(i)] for i in np.asarray(picked)[: int(count)]]
+    note = (
+        f"background: median of the {len(chosen)} of {len(indices)} frames with the least "
+        f"foreground ({_ranges(chosen)}; choose with --background)"
+    )
+    return [read(i) for i in chosen], note
+
+
+def _ranges(indices: list[int]) -> str:
+    """``[0, 1, 2, 5, 7, 8]`` -> ``"0-2, 5, 7-8"``."""
+    runs: list[list[int]] = []
+    for i in indices:
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in runs)
+
+
 def parse_live_background(text: str) -> tuple[int, int]:
-    """``--background`` of a live stream: ``"N"`` (frames 0..N-1) or ``"A:B"`` -> ``(A, B)``."""
+    """``--background`` of a live stream: ``"N"`` (frames 0..N-1; ``"auto"``: 25) or
+    ``"A:B"`` -> ``(A, B)``."""
+    if text == "auto":
+        text = str(AUTO_BACKGROUND_FRAMES)
     try:
         if ":" in text:
             a, b = (int(v) for v in text.split(":"))

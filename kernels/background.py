@@ -25,6 +25,13 @@ background, in colour and in depth. Here:
   hair, a window, a far wall out of range) colour decides: the largest
   absolute channel difference to the background colour above
   ``colour_threshold``.
+* :func:`foreground_shares` and :func:`quiet_frames` pick the frames to take the
+  median over when nobody says which frames show the empty scene: those with the
+  least foreground in front of the farthest surface the candidates see (a recording
+  whose people come and go, e.g. IST images1: the empty frames at its start and
+  end). The shares are computed on every ``stride``-th pixel of every ``stride``-th
+  row, so that 150 full-HD candidates need about 1/16 of the memory of their
+  full-resolution median.
 * :func:`update_background` is the optional running update: a blend
   ``(1 - rate) bg + rate frame`` on background pixels only (foreground never
   leaks into the model), depth only where the frame measured it; a pixel with
@@ -45,6 +52,9 @@ __all__ = [
     "median_background",
     "masked_median",
     "foreground_mask",
+    "foreground_shares",
+    "masked_quantile",
+    "quiet_frames",
     "update_background",
 ]
 
@@ -54,22 +64,33 @@ class Background(NamedTuple):
     depth: Array  # [H, W] float32 mm, 0 = never measured
 
 
-def masked_median(values: Array, valid: Array, axis: int = 0) -> Array:
-    """Median of ``values`` along ``axis`` over the entries where ``valid``; 0 if none.
+def masked_quantile(values: Array, valid: Array, q: float | Array, axis: int = 0) -> Array:
+    """Quantile ``q`` in ``[0, 1]`` of ``values`` along ``axis`` over the entries where
+    ``valid``; 0 if none.
 
-    Equals ``np.nanmedian`` with the invalid entries set to NaN (mean of the two
-    middle samples for an even count). ``float32`` result.
+    Equals ``np.nanquantile(..., method="linear")`` with the invalid entries set to NaN.
+    ``float32`` result.
     """
     v = jnp.moveaxis(jnp.asarray(values, jnp.float32), axis, 0)
     ok = jnp.moveaxis(jnp.asarray(valid, bool), axis, 0)
     # Invalid samples sort to the end; the first n entries are the valid ones.
     s = jnp.sort(jnp.where(ok, v, jnp.inf), axis=0)
     n = jnp.sum(ok, axis=0)
-    lo = jnp.clip((n - 1) // 2, 0, v.shape[0] - 1)
-    hi = jnp.clip(n // 2, 0, v.shape[0] - 1)
+    pos = q * jnp.maximum(n - 1, 0).astype(jnp.float32)
+    lo = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, v.shape[0] - 1)
+    hi = jnp.clip(jnp.ceil(pos).astype(jnp.int32), 0, v.shape[0] - 1)
     a = jnp.take_along_axis(s, lo[None], axis=0)[0]
     b = jnp.take_along_axis(s, hi[None], axis=0)[0]
-    return jnp.where(n > 0, 0.5 * (a + b), 0.0)
+    return jnp.where(n > 0, a + (pos - lo) * (b - a), 0.0)
+
+
+def masked_median(values: Array, valid: Array, axis: int = 0) -> Array:
+    """Median of ``values`` along ``axis`` over the entries where ``valid``; 0 if none.
+
+    Equals ``np.nanmedian`` with the invalid entries set to NaN (mean of the two
+    middle samples for an even count). ``float32`` result.
+    """
+    return masked_quantile(values, valid, 0.5, axis)
 
 
 def median_background(colour: Array, depth: Array) -> Background:
@@ -107,6 +128,71 @@ def foreground_mask(
     diff = jnp.abs(jnp.asarray(colour).astype(jnp.float32) - background.colour)
     colour_fg = jnp.max(diff, axis=-1) > colour_threshold
     return jnp.where(have & have_bg, nearer, colour_fg)
+
+
+def foreground_shares(
+    colour: Array,
+    depth: Array,
+    *,
+    stride: int = 4,
+    far_quantile: float | Array = 0.8,
+    depth_abs: float | Array = 150.0,
+    depth_rel: float | Array = 0.05,
+    colour_threshold: float | Array = 40.0,
+) -> Array:
+    """``[K]`` foreground share of each frame of ``colour [K, H, W, 3]`` / ``depth [K, H, W]``:
+    how much of it stands in front of the empty scene.
+
+    The empty scene's depth is the ``far_quantile`` of each pixel's measured depths
+    over the ``K`` frames (:func:`masked_quantile`; the farthest surface seen in a fifth
+    of them at 0.8), so that someone standing at a pixel in most frames does not become
+    the scene. A pixel counts where the frame is nearer than that by more than
+    ``max(depth_abs, depth_rel * z)``; where neither has depth, where its colour differs
+    from the per-pixel colour median by more than ``colour_threshold`` (a recording
+    without depth is judged by colour alone); where only one has depth, not at all.
+    Everything on the pixel lattice of step ``stride`` (static).
+    """
+    if stride < 1:
+        raise ValueError(f"foreground_shares: stride must be >= 1, got {stride}")
+    c = jnp.asarray(colour)[:, ::stride, ::stride].astype(jnp.float32)
+    z = jnp.asarray(depth)[:, ::stride, ::stride].astype(jnp.float32)
+    far = masked_quantile(z, z > 0, far_quantile, axis=0)
+    col = jnp.median(c, axis=0)
+    both = (z > 0) & (far > 0)
+    neither = (z <= 0) & (far <= 0)
+    nearer = (far - z) > jnp.maximum(depth_abs, depth_rel * far)
+    colour_fg = jnp.max(jnp.abs(c - col), axis=-1) > colour_threshold
+    fg = jnp.where(both, nearer, neither & colour_fg)
+    return jnp.mean(fg.astype(jnp.float32), axis=(1, 2))
+
+
+def quiet_frames(
+    share: Array,
+    n_max: int,
+    n_min: int = 5,
+    margin: float | Array = 0.01,
+    factor: float | Array = 2.0,
+) -> tuple[Array, Array]:
+    """The frames in which the scene is emptiest, from their ``share [K]``
+    (:func:`foreground_shares`): ``(indices [n_max] int32, count)``.
+
+    Chosen: every frame whose share is at most ``factor`` times the smallest plus
+    ``margin`` (a scene that is never empty keeps many frames for its median), and at
+    least the ``n_min`` quietest, at most the ``n_max`` quietest (ties: the earlier
+    frame). ``indices[:count]`` holds them in ascending order, the rest is -1.
+    ``n_max`` / ``n_min`` are static; ``1 <= n_min <= n_max``.
+    """
+    k = share.shape[0]
+    if not 1 <= n_min <= n_max:
+        raise ValueError(f"quiet_frames: need 1 <= n_min <= n_max, got {n_min}, {n_max}")
+    order = jnp.argsort(share, stable=True)
+    rank = jnp.arange(k)
+    sorted_share = share[order]
+    near_best = sorted_share <= factor * sorted_share[0] + margin
+    chosen = ((rank < n_min) | near_best) & (rank < n_max)
+    picked = jnp.sort(jnp.where(chosen, order, k))
+    picked = jnp.pad(picked, (0, max(n_max - k, 0)), constant_values=k)[:n_max]
+    return jnp.where(picked < k, picked, -1).astype(jnp.int32), jnp.sum(chosen)
 
 
 def update_background(

@@ -11,8 +11,11 @@ from scipy import stats
 from cpf_jax.kernels.background import (
     Background,
     foreground_mask,
+    foreground_shares,
     masked_median,
+    masked_quantile,
     median_background,
+    quiet_frames,
     update_background,
 )
 from cpf_jax.kernels.boxes import xywh_to_rect
@@ -109,6 +112,100 @@ def test_foreground_rules():
     fg = np.asarray(foreground_mask(colour, depth, bg))
     # nearer by 1 m: fg; farther (colour differs): not fg; no bg depth: colour; no depth: colour
     np.testing.assert_array_equal(fg, [[True, False, True, False]])
+
+
+@pytest.mark.parametrize("mode", ["jit", "vmap"])
+@pytest.mark.parametrize("stride", [1, 3])
+def test_foreground_shares_match_numpy(mode, stride):
+    colour, depth = _stack(3)
+    depth[:, 5:9, 5:9] = 0  # never measured: colour decides there
+    c = colour[:, ::stride, ::stride].astype(np.float64)
+    z = depth[:, ::stride, ::stride].astype(np.float64)
+    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):  # all-NaN pixels
+        far = np.nan_to_num(np.nanquantile(np.where(z > 0, z, np.nan), 0.8, axis=0))
+    col = np.median(c, axis=0)
+    want = []
+    for i in range(K):
+        both = (z[i] > 0) & (far > 0)
+        neither = (z[i] == 0) & (far == 0)
+        nearer = (far - z[i]) > np.maximum(150.0, 0.05 * far)
+        col_fg = np.abs(c[i] - col).max(-1) > 40.0
+        want.append(np.where(both, nearer, neither & col_fg).mean())
+    fn = jax.jit(foreground_shares, static_argnames="stride")
+    if mode == "jit":
+        got = np.asarray(fn(colour, depth, stride=stride))
+    else:
+        batch = jax.vmap(lambda a, b: foreground_shares(a, b, stride=stride))(
+            jnp.stack([colour, colour]), jnp.stack([depth, depth])
+        )
+        got = np.asarray(batch[1])
+    assert 0 < min(want) and max(want) < 1
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+@pytest.mark.parametrize("q", [0.0, 0.3, 0.5, 0.8, 1.0])
+def test_masked_quantile_matches_nanquantile(q):
+    colour, depth = _stack(5)
+    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):  # all-NaN corner
+        ref = np.nanquantile(np.where(depth > 0, depth, np.nan).astype(np.float64), q, axis=0)
+    got = jax.jit(masked_quantile)(depth, depth > 0, q)
+    np.testing.assert_allclose(np.asarray(got), np.nan_to_num(ref, nan=0.0), rtol=1e-6)
+
+
+@pytest.mark.parametrize("mode", ["jit", "vmap"])
+def test_quiet_frames_rule(mode):
+    share = jnp.array([0.30, 0.001, 0.20, 0.004, 0.02, 0.25, 0.0, 0.011, 0.006, 0.40])
+
+    def pick(s, n_max, n_min):
+        if mode == "jit":
+            idx, count = jax.jit(quiet_frames, static_argnums=(1, 2))(s, n_max, n_min)
+        else:
+            idx, count = jax.vmap(lambda x: quiet_frames(x, n_max, n_min))(jnp.stack([s, s]))
+            idx, count = idx[1], count[1]
+        idx = np.asarray(idx)
+        assert np.all(idx[int(count) :] == -1)
+        return idx[: int(count)].tolist()
+
+    # Within 0.01 of the quietest (0.0): frames 1, 3, 6, 8; frame 7 (0.011) is not.
+    assert pick(share, 8, 2) == [1, 3, 6, 8]
+    assert pick(share, 3, 2) == [1, 3, 6]  # at most the 3 quietest
+    assert pick(share, 8, 6) == [1, 3, 4, 6, 7, 8]  # at least 6
+    # Up to twice the quietest share plus the margin: 2 * 0.02 + 0.01 = 0.05.
+    assert pick(jnp.array([0.048, 0.02, 0.049, 0.052, 0.3]), 8, 1) == [0, 1, 2]
+    # Ties go to the earlier frame; n_max above the frame count pads with -1.
+    assert pick(jnp.full((4,), 0.5), 6, 1) == [0, 1, 2, 3]
+    assert pick(jnp.array([0.5, 0.1, 0.1, 0.9]), 1, 1) == [1]
+    with pytest.raises(ValueError, match="n_min <= n_max"):
+        quiet_frames(share, 2, 3)
+
+
+def test_quiet_frames_find_the_empty_room_a_median_of_all_frames_misses():
+    # An empty room (wall at 4 m) in frames 0, 5, 6 and 11; in the 8 others a person
+    # (1.5 m) stands in the middle, shifting by a few pixels. Where he stands the median
+    # of all 12 frames (and of any 6 evenly spaced) is the person; the quiet frames'
+    # median is the room. Judged against that median instead of the far quantile, the
+    # empty frames would not be the quiet ones: their poster's colour differs from the
+    # median's (the person) where neither has depth.
+    rng = np.random.default_rng(4)
+    n, h, w = 12, 40, 48
+    colour = np.full((n, h, w, 3), 90, np.uint8)
+    depth = (4000 + rng.integers(-20, 20, (n, h, w))).astype(np.uint16)
+    # A dark poster on the wall, behind where he stands, returns no depth.
+    colour[:, 10:20, 14:36] = 20
+    depth[:, 10:20, 14:36] = 0
+    empty = [0, 5, 6, 11]
+    for t in sorted(set(range(n)) - set(empty)):
+        x = 14 + (t % 3) * 2
+        colour[t, 5:38, x : x + 16] = (200, 40, 40)
+        depth[t, 5:38, x : x + 16] = 1500
+    share = jax.jit(foreground_shares, static_argnames="stride")(colour, depth, stride=2)
+    idx, count = quiet_frames(share, 25 if n > 25 else n, 3)
+    picked = np.asarray(idx)[: int(count)].tolist()
+    assert picked == empty, (picked, np.asarray(share).round(3))
+    room = median_background(colour[picked], depth[picked])
+    assert np.abs(np.asarray(room.depth)[20, 24] - 4000) < 30
+    everything = median_background(colour, depth)
+    assert np.asarray(everything.depth)[20, 24] == 1500  # the person, not the room
 
 
 def test_running_update_only_touches_background_pixels():

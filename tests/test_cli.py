@@ -174,6 +174,43 @@ def test_rgbd_model_on_a_synthetic_scenario_with_its_empty_room(tmp_path, capsys
     assert np.all(ious > 0.5), ious
 
 
+def test_default_background_is_the_recordings_empty_frames(tmp_path, capsys):
+    # A recording of the empty room (frames 0-4), then occlusion_return's walker, who
+    # never uncovers the middle of the view (10 frames): evenly spaced frames' median
+    # would hold him; --background auto (the default) takes the empty frames.
+    from cpf_jax.io.synthetic import SyntheticSource
+
+    seq = make_sequence("occlusion_return", seed=0, n_frames=10)
+    empty = SyntheticSource(seq, "occlusion_return").empty_background()
+    colour = [np.asarray(empty.colour)] * 5 + list(seq.colour)
+    depth = [np.asarray(empty.depth)] * 5 + list(seq.depth)
+    (tmp_path / "rgb").mkdir()
+    (tmp_path / "depth").mkdir()
+    for t, (c, d) in enumerate(zip(colour, depth, strict=True)):
+        cv2.imwrite(str(tmp_path / "rgb" / f"{t:06d}.png"), cv2.cvtColor(c, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(tmp_path / "depth" / f"{t:06d}.png"), d)
+    lines = ["0,0,0,0"] * 5
+    lines += [f"{x + 1:.0f},{y + 1:.0f},{w:.0f},{h:.0f}" for x, y, w, h in seq.boxes]
+    (tmp_path / "groundtruth_rect.txt").write_text("\n".join(lines) + "\n")
+    argv = [str(tmp_path), "--model", "rgbd", "--particles", "16", "--max-frames", "1"]
+    assert main([*argv, "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "note: background: median of the 5 of 15 frames with the least foreground (0-4;" in out
+    assert main([*argv, "--background", "15", "--no-progress"]) == 0
+    assert "background: median" not in capsys.readouterr().out
+
+
+def test_background_option_forms():
+    from cpf_jax.cli import AUTO_CANDIDATES, UsageError, parse_background, parse_live_background
+
+    assert parse_background("auto", 40) == list(range(40))  # every frame of a short one
+    assert len(parse_background("auto", 1000)) == AUTO_CANDIDATES
+    assert parse_background("3", 9) == [0, 4, 8] and parse_background("2:5", 9) == [2, 3, 4]
+    assert parse_live_background("auto") == (0, 25) and parse_live_background("7") == (0, 7)
+    with pytest.raises(UsageError, match="--background expects auto, empty"):
+        parse_background("often", 9)
+
+
 def test_says_when_steps_left_the_histogram_window(capsys):
     # A person walking towards the camera outgrows the window sized for the initial box:
     # the run says how many steps counted on the whole frame instead. (The AR1 model's
