@@ -81,7 +81,9 @@ def masked_quantile(values: Array, valid: Array, q: float | Array, axis: int = 0
     hi = jnp.clip(jnp.ceil(pos).astype(jnp.int32), 0, v.shape[0] - 1)
     a = jnp.take_along_axis(s, lo[None], axis=0)[0]
     b = jnp.take_along_axis(s, hi[None], axis=0)[0]
-    return jnp.where(n > 0, a + (pos - lo) * (b - a), 0.0)
+    t = pos - lo
+    # (1 - t) a + t b: at t = 1/2 bit for bit the mean of the two middle samples.
+    return jnp.where(n > 0, (1.0 - t) * a + t * b, 0.0)
 
 
 def masked_median(values: Array, valid: Array, axis: int = 0) -> Array:
@@ -156,13 +158,17 @@ def foreground_shares(
         raise ValueError(f"foreground_shares: stride must be >= 1, got {stride}")
     c = jnp.asarray(colour)[:, ::stride, ::stride].astype(jnp.float32)
     z = jnp.asarray(depth)[:, ::stride, ::stride].astype(jnp.float32)
-    far = masked_quantile(z, z > 0, far_quantile, axis=0)
-    col = jnp.median(c, axis=0)
-    both = (z > 0) & (far > 0)
-    neither = (z <= 0) & (far <= 0)
-    nearer = (far - z) > jnp.maximum(depth_abs, depth_rel * far)
-    colour_fg = jnp.max(jnp.abs(c - col), axis=-1) > colour_threshold
-    fg = jnp.where(both, nearer, neither & colour_fg)
+    scene = Background(jnp.median(c, axis=0), masked_quantile(z, z > 0, far_quantile, axis=0))
+    # foreground_mask's rules (broadcast over the K frames), less the pixels where only
+    # one of frame and scene has depth.
+    fg = foreground_mask(
+        c,
+        z,
+        scene,
+        depth_abs=depth_abs,
+        depth_rel=depth_rel,
+        colour_threshold=colour_threshold,
+    ) & ((z > 0) == (scene.depth > 0))
     return jnp.mean(fg.astype(jnp.float32), axis=(1, 2))
 
 
