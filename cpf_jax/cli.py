@@ -823,10 +823,12 @@ def quiet_background(read, indices: list[int]) -> tuple[list, str]:
 
     from cpf_jax.kernels.background import foreground_shares, quiet_frames
 
-    lattice = [read(i) for i in indices]
-    colour = np.stack([np.asarray(f.colour)[::QUIET_STRIDE, ::QUIET_STRIDE] for f in lattice])
-    depth = np.stack([np.asarray(f.depth)[::QUIET_STRIDE, ::QUIET_STRIDE] for f in lattice])
-    del lattice
+    colour, depth = [], []
+    for i in indices:  # one full-resolution frame in memory at a time
+        frame = read(i)
+        colour.append(np.asarray(frame.colour)[::QUIET_STRIDE, ::QUIET_STRIDE].copy())
+        depth.append(np.asarray(frame.depth)[::QUIET_STRIDE, ::QUIET_STRIDE].copy())
+    colour, depth = np.stack(colour), np.stack(depth)
     share = jax.jit(foreground_shares, static_argnames="stride")(colour, depth, stride=1)
     n_max = min(AUTO_BACKGROUND_FRAMES, len(indices))
     picked, count = quiet_frames(share, n_max, min(5, n_max))
