@@ -16,7 +16,7 @@ demo: $(STAMP)
 	$(BIN)/cpf-track walk_across_medium --particles 200 --seed 0 --out demo_boxes.csv --rrd demo.rrd
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist loadfile
+	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist loadfile --no-loadscope-reorder
 
 lint: $(STAMP)
 	$(BIN)/ruff check cpf_jax kernels tests experiments notebooks

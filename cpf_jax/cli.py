@@ -312,6 +312,15 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="raise glibc mmap/trim thresholds before JAX starts (CPU speed switch)",
     )
+    p.add_argument(
+        "--compile-cache",
+        default=None,
+        metavar="DIR|off",
+        help="keep compiled programs in DIR so that the next run with the same model and "
+        "sizes starts without compiling (default: $CPF_JAX_COMPILE_CACHE, else "
+        "~/.cache/cpf_jax/xla, kept under 1 GiB; a cache JAX is already given, e.g. by "
+        "JAX_COMPILATION_CACHE_DIR, is left as it is); 'off': none",
+    )
     return p
 
 
@@ -352,6 +361,7 @@ def _run(args: argparse.Namespace) -> int:
         from cpf_jax.cpu_tuning import tune_malloc
 
         tune_malloc()
+    _compile_cache(args.compile_cache)
     if args.particles < 1:
         raise UsageError(f"--particles must be >= 1, got {args.particles}")
     if args.sigma is not None and not args.sigma > 0:
@@ -371,6 +381,33 @@ def _run(args: argparse.Namespace) -> int:
     source = open_source(args.path)
     with source:  # a camera is stopped, a file closed, however the run ends
         return _track(args, source, options)
+
+
+def _compile_cache(choice: str | None) -> str | None:
+    """Set up JAX's persistent compilation cache (``--compile-cache``, before anything
+    compiles); returns the directory in use, or None. The default directory is a
+    convenience: when it cannot be used the run goes on without a cache (one warning
+    line); a directory given on the command line that cannot be used is an error."""
+    import jax
+
+    from cpf_jax import compile_cache
+
+    if choice == "off":
+        jax.config.update("jax_enable_compilation_cache", False)
+        return None
+    if choice is None:
+        own = compile_cache.configured()
+        if own is not None:  # JAX_COMPILATION_CACHE_DIR or a notebook's jax.config
+            return own
+        try:
+            return str(compile_cache.enable(compile_cache.default_dir()))
+        except OSError as e:
+            print(f"cpf-track: warning: no compilation cache ({e})", file=sys.stderr)
+            return None
+    try:
+        return str(compile_cache.enable(choice))
+    except OSError as e:
+        raise UsageError(f"--compile-cache {choice}: cannot use it ({e})") from None
 
 
 def _model_options(args: argparse.Namespace) -> tuple[dict, dict]:

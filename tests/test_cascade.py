@@ -66,8 +66,15 @@ def grid_run(walk):
     pts = jnp.asarray(seq.joints2d[0, idx] + 0.5)
     box = jnp.asarray(seq.boxes[0])
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    run = jax.jit(jax.vmap(lambda k: track_cascade(filt, params, k, frames, box, pts, bg)[1]))
-    return jax.device_get(run(keys)), (filt, params, frames, box, pts, bg, keys)
+    # Frames are an argument: the lost-box test below runs other frames of the same shape
+    # through this one compiled program.
+    run = jax.jit(
+        jax.vmap(
+            lambda k, frames: track_cascade(filt, params, k, frames, box, pts, bg)[1],
+            in_axes=(0, None),
+        )
+    )
+    return jax.device_get(run(keys, frames)), (filt, params, frames, box, pts, bg, keys, run)
 
 
 def test_cascade_tracks_box_and_body_points(walk, grid_run):
@@ -94,43 +101,40 @@ def test_layer2_works_in_layer1_box(grid_run):
     np.testing.assert_array_equal(used, est)
 
 
-@pytest.fixture(scope="module")
-def one_run(grid_run):
-    """The grid cascade of ``grid_run`` for one key, jitted once for the tests below
-    (frames are an argument: same shapes, one compile)."""
-    _, (filt, params, _, box, pts, bg, _) = grid_run
-    return jax.jit(lambda k, frames: track_cascade(filt, params, k, frames, box, pts, bg)[1])
-
-
-def test_cascade_jit_equals_vmap(grid_run, one_run):
-    info, (_, _, frames, _, _, _, keys) = grid_run
-    one = one_run(keys[1], frames)
+@pytest.mark.slow  # a second 45-s compile of the grid cascade; CI checks vmap in the rgb test
+def test_cascade_jit_equals_vmap(grid_run):
+    info, (filt, params, frames, box, pts, bg, keys, _) = grid_run
+    one = jax.jit(lambda k: track_cascade(filt, params, k, frames, box, pts, bg)[1])(keys[1])
     np.testing.assert_allclose(one.box.estimate, info.box.estimate[1], rtol=1e-5, atol=1e-2)
     np.testing.assert_allclose(one.points.mean, info.points.mean[1], rtol=1e-5, atol=1e-2)
 
 
-def test_lost_box_keeps_layer2_on_last_box(walk, one_run):
+def test_lost_box_keeps_layer2_on_last_box(walk, grid_run):
     """The walker vanishes (frames of the empty room): layer 1 votes the target hidden
     and reports lost; layer 2 keeps the last box it had, never a frame-wide search."""
     seq, _, _ = walk
+    *_, keys, run = grid_run[1]
     colour = np.array(seq.colour)
     depth = np.array(seq.depth)
     gone = T // 2
     colour[gone:] = seq.meta["background_colour"]
     depth[gone:] = seq.meta["background_depth"]
     frames = Frame(jnp.asarray(colour), jnp.asarray(depth))
-    info = jax.device_get(one_run(jax.random.PRNGKey(3), frames))
-    lost = info.box.lost
-    assert not lost[: gone - 1].any() and lost[gone - 1 :].sum() >= 3, lost
-    used = info.box_used
-    for t in np.flatnonzero(lost):
-        np.testing.assert_array_equal(used[t], used[t - 1])
-    assert np.isfinite(info.points.mean).all()
+    infos = jax.device_get(run(keys, frames))
+    for k in range(len(keys)):
+        info = jax.tree.map(lambda a, k=k: a[k], infos)
+        lost = info.box.lost
+        assert not lost[: gone - 1].any() and lost[gone - 1 :].sum() >= 3, lost
+        used = info.box_used
+        for t in np.flatnonzero(lost):
+            np.testing.assert_array_equal(used[t], used[t - 1])
+        assert np.isfinite(info.points.mean).all()
 
 
 def test_rgb_variant_box_is_the_colour_layer(walk):
     """With the colour layer as layer 1, the cascade's boxes are exactly those of the
-    colour filter alone under the same keys (layer 2 does not feed back)."""
+    colour filter alone under the same keys (layer 2 does not feed back): the cascade
+    under jit and vmap against the layer's own step under jit."""
     seq, idx, _ = walk
     n = 6
     colour_cfg = ColourConfig(n_particles=64).with_window(
@@ -142,9 +146,10 @@ def test_rgb_variant_box_is_the_colour_layer(walk):
     frames = Frame(jnp.asarray(seq.colour[:n]), jnp.asarray(seq.depth[:n]))
     pts = jnp.asarray(seq.joints2d[0, idx] + 0.5)
     box = jnp.asarray(seq.boxes[0])
-    _, info = jax.jit(lambda k: track_cascade(filt, params, k, frames, box, pts))(
-        jax.random.PRNGKey(5)
-    )
+    # Under vmap over two keys; the first must equal the colour filter's jitted steps.
+    keys = jnp.stack([jax.random.PRNGKey(5), jax.random.PRNGKey(6)])
+    _, infos = jax.jit(jax.vmap(lambda k: track_cascade(filt, params, k, frames, box, pts)))(keys)
+    info = jax.tree.map(lambda a: a[0], infos)
 
     colour = build_colour_filter(colour_cfg)
     cparams = default_colour_params()

@@ -320,7 +320,11 @@ def _success(jumps, variant: str, detector_fraction: float) -> float:
     return float(np.mean(scores))
 
 
-@pytest.mark.parametrize("variant", ["rgbd", "grid-occlusion"])
+# "rgbd" carries the stronger check (20 points); "grid-occlusion", whose recovery search
+# also finds the figure, is one more 35-s compile, run with -m slow.
+@pytest.mark.parametrize(
+    "variant", ["rgbd", pytest.param("grid-occlusion", marks=pytest.mark.slow)]
+)
 def test_detector_proposal_follows_jumps_the_motion_prior_cannot(jumps, variant):
     """Stated threshold: success rate >= 90 % with the detector proposal (2 keys). With
     the motion prior alone, "rgbd" loses the figure at the first 30 px jump (success
