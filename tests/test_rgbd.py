@@ -579,6 +579,9 @@ def _reversal_toy(rng: np.random.Generator):
     return Frame(jnp.asarray(colour), jnp.asarray(depth)), gt
 
 
+# Documents a non-default setting against the default's known failure (12 runs, 35-45 s);
+# the fade itself runs in every grid-occlusion test at its default 0.05. Run with -m slow.
+@pytest.mark.slow
 def test_velocity_fade_finds_a_target_that_turns_back_while_hidden(toy):
     """A target walking away turns round behind the occluder and comes back nearer than
     where it was hidden. Stated: with ``depth_velocity_fade`` 0.3 (the templates stop
