@@ -46,7 +46,7 @@ def _library_names(tree: ast.Module):
         if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("cpf_jax"):
             for alias in node.names:
                 full = f"{node.module}.{alias.name}"
-                if importlib.util.find_spec(node.module) and _is_module(full):
+                if _is_module(full):
                     modules[alias.asname or alias.name] = full
                 else:
                     yield node.module, alias.name
