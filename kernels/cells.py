@@ -24,6 +24,12 @@ w, h)`` top-left float pixels; depth is ``uint16`` millimetres, 0 = missing.
 * :func:`histogram_fraction_below` is the share of the counted pixels nearer
   than a threshold, with the same in-bin interpolation: the depth-ordering
   evidence ("something in this cell is nearer than the target").
+* :func:`strip_table` / :func:`strip_counts` give, for many rects at once, two
+  scalar counts where a whole histogram would be wasted: the foreground pixels
+  and the depth-counted pixels not nearer than a threshold (the latter with
+  :func:`histogram_fraction_below`'s in-bin interpolation), from one
+  four-channel ``int32`` summed-area table (the border strips of
+  ``cpf_jax.rgbd``).
 * :func:`beta_log_density` is the log of the Beta density of paper eq. 2, on a
   ratio clipped to ``[eps, 1 - eps]`` (a ratio of exactly 0 or 1 would give an
   infinite log-density for shapes below or above 1).
@@ -48,6 +54,8 @@ import numpy as np
 from jax import Array
 from jax.scipy.special import betaln
 
+from .histogram import integral_image, rect_sums
+
 __all__ = [
     "grid_cells",
     "border_strips",
@@ -58,6 +66,8 @@ __all__ = [
     "bin_coord_to_depth",
     "histogram_quantile",
     "histogram_fraction_below",
+    "strip_table",
+    "strip_counts",
     "beta_log_density",
     "coarse_counts",
     "window_sums",
@@ -179,6 +189,49 @@ def histogram_fraction_below(
     w = jnp.clip(p[..., None] - jnp.arange(n_bins, dtype=jnp.float32), 0.0, 1.0)
     total = jnp.sum(c, axis=-1)
     return jnp.where(total > 0, jnp.sum(c * w, axis=-1) / jnp.maximum(total, 1.0), 0.0)
+
+
+def strip_table(
+    colour_bins: Array,
+    n_colour: int,
+    depth_bins: Array,
+    threshold: Array,
+    n_bins: int,
+    z_min: float,
+    z_max: float,
+) -> tuple[Array, Array]:
+    """Summed-area table ``[H + 1, W + 1, 4] int32`` and in-bin fraction ``[]`` for
+    :func:`strip_counts`.
+
+    Channels, per pixel: a colour bin in ``[0, n_colour)`` (foreground); a depth bin
+    in ``[0, n_bins)``; a depth bin wholly nearer than ``threshold`` (mm); the depth
+    bin holding ``threshold``. The fraction is the threshold's position inside that
+    bin (the share of its count :func:`histogram_fraction_below` takes as nearer).
+    ``n_colour`` and the bin layout are static.
+    """
+    p = depth_to_bin_coord(threshold, n_bins, z_min, z_max)
+    # Clipped so the cast stays in range: below -1 no bin is nearer, from n_bins on all are.
+    k = jnp.floor(jnp.clip(p, -1.0, float(n_bins))).astype(jnp.int32)
+    c = jnp.asarray(colour_bins)
+    d = jnp.asarray(depth_bins)
+    counted = (d >= 0) & (d < n_bins)
+    planes = (
+        (c >= 0) & (c < n_colour),
+        counted,
+        counted & (d < k),
+        counted & (d == k),
+    )
+    table = integral_image(jnp.stack(planes, axis=-1).astype(jnp.int32))
+    return table, p - jnp.floor(p)
+
+
+def strip_counts(table: Array, frac: Array, rects: Array) -> tuple[Array, Array]:
+    """``(foreground, far) [...]`` float32 counts of ``rects [..., 4] (x0, y0, x1, y1)``
+    (clipped to the frame) from :func:`strip_table`: the foreground pixels, and the
+    depth-counted pixels not nearer than the threshold (``total * (1 -
+    histogram_fraction_below)`` of the rect's depth histogram, without the histogram)."""
+    s = rect_sums(table, rects).astype(jnp.float32)
+    return s[..., 0], s[..., 1] - s[..., 2] - frac * s[..., 3]
 
 
 def beta_log_density(ratio: Array, a: Array, b: Array, eps: float = 1e-3) -> Array:

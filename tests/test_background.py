@@ -28,6 +28,8 @@ from cpf_jax.kernels.cells import (
     histogram_fraction_below,
     histogram_quantile,
     side_cells,
+    strip_counts,
+    strip_table,
 )
 from cpf_jax.kernels.histogram import box_histograms
 
@@ -335,6 +337,56 @@ def test_histogram_quantile_empty_and_fraction_below():
         in_bin = ((z >= edges[j]) & (z < edges[j + 1])).mean()
         assert abs(g - r) <= in_bin + 1e-6
     assert float(histogram_fraction_below(empty, jnp.float32(3000), NZ, ZLO, ZHI)) == 0.0
+
+
+@pytest.mark.parametrize("mode", ["jit", "vmap"])
+def test_strip_counts_equal_the_histogram_path_and_numpy(mode):
+    """Foreground and not-nearer counts of rects from the strip table against a NumPy loop
+    (foreground: exact) and against ``total * (1 - histogram_fraction_below)`` of each
+    rect's exact depth histogram (to float rounding), for thresholds below, inside and
+    above the bin range, rects partly or wholly outside the frame and empty ones."""
+    rng = np.random.default_rng(5)
+    n_colour = 9  # colour bins 0..8 foreground, 9 a background bin, -1 not counted
+    colour_bins = rng.integers(-1, n_colour + 1, (H, W)).astype(np.int32)
+    _, depth = _stack(2)
+    depth_bins = np.asarray(depth_bin_index(depth[0], None, NZ, ZLO, ZHI))
+    xywh = np.concatenate(
+        [
+            np.stack([rng.uniform(-8, W, 40), rng.uniform(-8, H, 40)], 1),
+            rng.uniform(0, 16, (40, 2)),
+        ],
+        1,
+    ).astype(np.float32)
+    xywh[:3, 2:] = 0.0  # empty
+    xywh[3] = (W + 2, 0, 5, 5)  # outside the frame
+    rects = np.asarray(xywh_to_rect(jnp.asarray(xywh)))
+    thresholds = np.array([100.0, 1500.0, 2718.0, 5000.0, 20000.0], np.float32)
+
+    def counts(thr):
+        table, frac = strip_table(colour_bins, n_colour, depth_bins, thr, NZ, ZLO, ZHI)
+        return strip_counts(table, frac, jnp.asarray(rects))
+
+    if mode == "jit":
+        got = [jax.jit(counts)(jnp.float32(t)) for t in thresholds]
+    else:
+        fg_all, far_all = jax.vmap(counts)(jnp.asarray(thresholds))
+        got = list(zip(fg_all, far_all, strict=True))
+    depth_hist = np.asarray(box_histograms(jnp.asarray(depth_bins), jnp.asarray(rects), NZ))
+    total = depth_hist.sum(-1)
+    for thr, (fg, far) in zip(thresholds, got, strict=True):
+        ref_fg = []
+        for x0, y0, x1, y1 in rects:
+            x0, x1 = np.clip([x0, x1], 0, W)
+            y0, y1 = np.clip([y0, y1], 0, H)
+            cut = colour_bins[y0:y1, x0:x1]
+            ref_fg.append(((cut >= 0) & (cut < n_colour)).sum())
+        np.testing.assert_array_equal(np.asarray(fg), ref_fg)
+        near = np.asarray(histogram_fraction_below(jnp.asarray(depth_hist), thr, NZ, ZLO, ZHI))
+        np.testing.assert_allclose(np.asarray(far), total * (1.0 - near), atol=1e-3)
+    assert np.asarray(got[0][1]).max() > 0  # every counted pixel is farther than 100 mm
+    np.testing.assert_allclose(np.asarray(got[0][1]), total, atol=1e-3)
+    np.testing.assert_array_equal(np.asarray(got[-1][1]), 0.0)  # all nearer than 20 m
+    assert (np.asarray(got[0][0])[:4] == 0).all()  # empty and outside rects count nothing
 
 
 @pytest.mark.parametrize("mode", ["jit", "vmap"])
