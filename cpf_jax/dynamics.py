@@ -58,7 +58,13 @@ is scaled by the box's aspect / 0.41, so a box mostly grows or shrinks as a
 whole, as a person's does when the distance to the camera changes.
 
 Guidance applies on top of ``ar1`` or ``ar1_fixed`` (the models the thesis
-used it with).
+used it with), and to ``random_walk`` when the caller passes ``guide``, the
+target's estimated velocity ``[2]`` (the colour filter's smoothed estimate
+motion): the random walk has no velocity of its own, so the guided share of its
+particles drifts by ``guide`` and takes the position noise above with ``guide``
+as its motion (sizes diffuse as before). The rest diffuse around where they
+were, so a walker who stops or turns round keeps particles on him, which the
+ar1 velocity does not. Without ``guide`` the random walk is unguided.
 """
 
 from __future__ import annotations
@@ -188,7 +194,7 @@ def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionPara
     guided = noise.at[:, 0].set(dx).at[:, 1].set(dy)
     guided = guided.at[:, 6].multiply(size_scale).at[:, 7].multiply(size_scale)
     is_guided = uniform(key, (n,)) < motion.guided_fraction
-    return jnp.where(is_guided[:, None], guided, noise)
+    return jnp.where(is_guided[:, None], guided, noise), is_guided
 
 
 def propagate(
@@ -202,10 +208,13 @@ def propagate(
     hierarchical: bool = False,
     scale: Array | None = None,
     rng: str = "jax",
+    guide: Array | None = None,
 ) -> Array:
     """Draw the next particle states from the motion model; ``[N, 8] -> [N, 8]``.
 
     ``model``, ``hierarchical`` and ``rng`` (one of ``RNGS``) are static.
+    ``guide`` (``[2]`` px/frame, optional): the target's estimated velocity, which
+    guides the random walk under ``hierarchical`` (module docstring).
     ``scale`` (``[N]``, optional) multiplies every particle's noise, e.g. by
     its box size relative to a reference so that ``tau`` is expressed for a
     reference box. Sizes are not clipped here; the filter keeps them in range.
@@ -231,7 +240,7 @@ def propagate(
     if fixed:
         noise = noise.at[:, 4:].set(0.0)
     if hierarchical and model in ("ar1", "ar1_fixed"):
-        noise = _guided_noise(k_guide, particles, noise, motion, uniform)
+        noise, _ = _guided_noise(k_guide, particles, noise, motion, uniform)
         if fixed:
             noise = noise.at[:, 4:].set(0.0)
     if model in ("ar1", "ar1_fixed"):
@@ -239,7 +248,16 @@ def propagate(
     elif model in ("ar2", "ar2_fixed"):
         out = _ar2(particles, previous, noise)
     else:  # random walk: positions and sizes diffuse, velocities stay zero
-        out = particles + noise.at[:, 2:4].set(0.0).at[:, 6:8].set(0.0)
+        step = noise.at[:, 2:4].set(0.0).at[:, 6:8].set(0.0)
+        if hierarchical and guide is not None:
+            # Motion-guided random walk: the guided share drifts by the target's
+            # estimated velocity, its position noise stretched along it.
+            v = jnp.broadcast_to(jnp.asarray(guide, jnp.float32), (particles.shape[0], 2))
+            moving = particles.at[:, 2:4].set(v)
+            guided, is_guided = _guided_noise(k_guide, moving, noise, motion, uniform)
+            drift = jnp.where(is_guided[:, None], v, 0.0)
+            step = step.at[:, :2].set(guided[:, :2] + drift)
+        out = particles + step
         out = out.at[:, 2:4].set(0.0).at[:, 6:8].set(0.0)
     if fixed:
         out = out.at[:, 4:6].set(particles[:, 4:6]).at[:, 6:8].set(0.0)

@@ -75,6 +75,25 @@ def test_tracks_a_moving_box_under_scan(seq):
     assert (ious >= 0.5).mean() >= 0.95, ious.round(2)
 
 
+def test_motion_guided_walk_follows_a_fast_box_that_the_plain_walk_lags():
+    """8 px/frame, 64 particles: the plain random walk's noise (about 4 px for this
+    50 px box) trails the box; the guided share drifts with the estimate's velocity."""
+    frames, gt = _frames(16, x0=5.0, speed=8.0)
+    keys = jax.random.split(jax.random.PRNGKey(0), 4)
+    mean_iou = {}
+    for guided in (True, False):
+        filt = build_colour_filter(ColourConfig(n_particles=64, hierarchical=guided))
+        state, infos = jax.jit(
+            jax.vmap(lambda k, filt=filt: track(filt, PARAMS, k, frames, gt[0]))
+        )(keys)
+        boxes = np.concatenate([np.broadcast_to(gt[:1], (4, 1, 4)), infos.estimate], axis=1)
+        mean_iou[guided] = np.array([np.mean(np.asarray(iou(b, gt))) for b in boxes])
+        if guided:  # the smoothed estimate velocity the guidance uses
+            np.testing.assert_allclose(np.asarray(state.velocity), [[8.0, 0.0]] * 4, atol=1.0)
+    assert (mean_iou[True] >= 0.85).all(), mean_iou
+    assert mean_iou[True].mean() > mean_iou[False].mean() + 0.05, mean_iou
+
+
 def test_step_state_and_info_are_finite_and_shaped(seq):
     frames, gt = seq
     f0 = Frame(frames.colour[0], frames.depth[0])

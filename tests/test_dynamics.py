@@ -131,6 +131,38 @@ def test_guided_fraction_zero_equals_plain():
     np.testing.assert_allclose(np.asarray(a), np.asarray(b))
 
 
+def test_guided_random_walk_drifts_its_share_by_the_estimated_velocity():
+    n = 40_000
+    tau = jnp.asarray(THESIS_TAU)
+    mp = default_motion_params()._replace(guided_fraction=jnp.float32(0.5))
+    still = jnp.tile(jnp.array([[100.0, 100.0, 0.0, 0.0, 40.0, 90.0, 0.0, 0.0]]), (n, 1))
+    v = jnp.array([8.0, 0.0])
+    rw = dict(model="random_walk", hierarchical=True)
+    out = np.asarray(propagate(KEY, still, still, tau, mp, guide=v, **rw))
+    dx, dy = out[:, 0] - 100.0, out[:, 1] - 100.0
+    # a two-component mixture: half around +8 px (stretched along x), half around 0
+    stretch = 1.0 + 2.0 * 8.0 / (8.0 + 4.0)  # default guide_gain / guide_speed
+    assert abs(dx.mean() - 4.0) < 0.3 and abs(dy.mean()) < 0.2
+    var_x = 0.5 * 100.0 + 0.5 * (10.0 * stretch) ** 2 + 0.25 * 64.0
+    var_y = 0.5 * 100.0 + 0.5 * (10.0 / stretch) ** 2
+    np.testing.assert_allclose([dx.var(), dy.var()], [var_x, var_y], rtol=0.04)
+    mp1 = mp._replace(guided_fraction=jnp.float32(1.0))
+    one = np.asarray(propagate(KEY, still, still, tau, mp1, guide=v, **rw))
+    np.testing.assert_allclose(one[:, 0].mean(), 108.0, atol=0.3)
+    np.testing.assert_allclose(
+        [one[:, 0].std(), one[:, 1].std()], [10.0 * stretch, 10.0 / stretch], rtol=0.03
+    )
+    np.testing.assert_allclose(one[:, 4:6].std(axis=0), [0.1 * 40 / 90 / 0.41, 0.1], rtol=0.05)
+    assert (one[:, 2:4] == 0).all() and (one[:, 6:8] == 0).all()  # still a random walk
+    # no guide, plain sampling, or a zero velocity with nothing guided: the plain walk
+    plain = np.asarray(propagate(KEY, still, still, tau, mp, model="random_walk"))
+    np.testing.assert_array_equal(np.asarray(propagate(KEY, still, still, tau, mp, **rw)), plain)
+    mp0 = mp._replace(guided_fraction=jnp.float32(0.0))
+    np.testing.assert_allclose(
+        np.asarray(propagate(KEY, still, still, tau, mp0, guide=v, **rw)), plain, atol=1e-5
+    )
+
+
 @pytest.mark.parametrize("model", MODELS)
 def test_jit_and_vmap(model):
     p = jnp.tile(STATE, (16, 1))
