@@ -102,6 +102,27 @@ z_t)`` and is weighted by ``sum_z T[z_{t-1}, z] p(y_t | B_t, z)``: the same
 model as eq. 6, with the Monte Carlo noise of the flags integrated out (2^C
 terms per particle for the full matrix, 2 per cell for the factorised form).
 
+Body colour (``body_term``; not in the paper)
+-------------------------------------------
+The cells' colour templates describe the first box's layout: on the IST recording that
+is a man's head and shoulders at 1 m, which says little about his whole body at 4 m, so
+the cell colour terms could not tell him from a neighbour at his depth. One more term
+scores identity without layout: the foreground colour histogram of the cells visible in
+a flag state, pooled, against a whole-body template ``h_B``::
+
+    log p_B(s) = max(-(d_B(s)^2 - body_ref^2) / (2 sigma_body^2), body_floor)
+
+(0 when fewer than ``body_min_pixels`` visible foreground pixels are left, so a fully
+occluded state is neither rewarded nor punished; ``body_ref`` is a typical distance of
+the target, which scores 0). It joins the other multi-cell terms, per flag state, inside
+the exact flag marginalisation; the pooling happens inside the histogram reduction, so
+the ``[N, C, B]`` counts never exist at once. ``h_B`` starts as the initial box's
+foreground histogram, is a running mean of the reported boxes of the unoccluded frames
+among the first ``body_warmup`` steps (the first box may show part of the person), then
+forgets at ``body_rate``; frames with any cell voted (posterior above 0.1) or lost do not
+teach it. A warm-up counted in learnt frames instead (10) let the IST man's template
+learn from boxes that took in the striped-sweater man beside him (frames 66-68).
+
 Voting, search and template update (paper 3.1-3.2, eq. 7-8)
 ----------------------------------------------------------
 The vote ``v_i`` is the posterior expectation of flag ``i`` over particles
@@ -369,6 +390,10 @@ class RGBDConfig:
     # of a tight box there is foreground, just outside there is none at the target's
     # depth. Their ratios have fitted Betas too; they pin the box's scale (see docstring).
     border: float = 0.1
+    # Whole-body colour term ("Body colour" in the module docstring): the foreground
+    # colour histogram of the visible cells pooled, against one slowly learnt template of
+    # the whole person (the cells' templates describe the first box's layout only).
+    body_term: bool = True
     # Cap the fast-motion component's length by the initial box's height at the target's
     # depth (``fast_length``). None: on for "grid-occlusion" only, whose depth templates
     # learn only in cells voted visible; on the IST recording the cap cost "grid" (whose
@@ -478,6 +503,12 @@ class RGBDParams(NamedTuple):
     border_a: Array  # [8] Beta shapes of the border strips' ratios (inner t/b/l/r, outer t/b/l/r)
     border_b: Array  # [8]
     border_floor: Array  # lowest log-density of one border strip
+    sigma_body: Array  # width of the body colour term on the Bhattacharyya distance ...
+    body_ref: Array  # ... which scores 0 at this distance (and above it less than 0)
+    body_floor: Array  # lowest log-likelihood of the body colour term
+    body_min_pixels: Array  # fewer visible foreground pixels: the body term says nothing
+    body_rate: Array  # 1 - lambda of the body template after the warm-up ...
+    body_warmup: Array  # ... a running mean of the unoccluded frames among the first steps
     # Gain of the Beta means' shift towards the initial box's foreground fill (0: the
     # fitted shapes as they are; ``fill_adapted``) ...
     fill_adapt: Array
@@ -543,6 +574,12 @@ PARAM_CONSTRAINTS = RGBDParams(
     border_a="softplus",
     border_b="softplus",
     border_floor="identity",
+    sigma_body="softplus",
+    body_ref="softplus",
+    body_floor="identity",
+    body_min_pixels="softplus",
+    body_rate="sigmoid",
+    body_warmup="softplus",
     fill_adapt="softplus",
     fill_deadzone="softplus",
     log_occluded="identity",
@@ -618,6 +655,12 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         border_a=jnp.asarray(DEFAULT_BORDER_BETA[0], jnp.float32),
         border_b=jnp.asarray(DEFAULT_BORDER_BETA[1], jnp.float32),
         border_floor=f(-6.0),
+        sigma_body=f(0.2),
+        body_ref=f(0.4),
+        body_floor=f(-6.0),
+        body_min_pixels=f(30.0),
+        body_rate=f(0.02),
+        body_warmup=f(5.0),
         fill_adapt=f(1.0),
         # 1.5 standard deviations of the logit of the whole-box Beta (3.52, 7.89): the
         # first frames of the synthetic walkers fill 0.36-0.56 of their boxes (their whole
@@ -702,6 +745,11 @@ class RGBDState(NamedTuple):
     # Logit shift of the Beta means towards the initial box's foreground fill
     # (``fill_adapted``; 0 without a background model).
     fill_shift: Array
+    # [B - 1] normalised foreground colour histogram of the whole target (``body_term``),
+    # the unoccluded frames it has learnt from and the steps since ``init``.
+    body_template: Array
+    body_frames: Array
+    body_steps: Array
 
 
 class RGBDInfo(NamedTuple):
@@ -861,6 +909,8 @@ class CellTerms(NamedTuple):
     area: Array  # pixels of the cell inside the frame
     l_border: Array  # [N, 8] Beta log-densities of the border strips (inner t/b/l/r, outer)
     border_ratio: Array  # [N, 8] their ratios
+    # [N, S] body colour term per flag state (``body_states``; zeros without a template)
+    l_body: Array
     # bool []: every rect was counted in the static window (False: no window, or
     # the exact whole-frame fallback ran).
     windowed: Array
@@ -874,12 +924,16 @@ def cell_terms(
     obs: _Observation,
     boxes_xywh: Array,
     depth_age: Array | None = None,
+    body_template: Array | None = None,
 ) -> CellTerms:
     """The per-cell likelihood terms of ``boxes_xywh [N, 4]`` (module docstring).
 
     ``depth_age [C]``: frames since each depth template was last updated; the
     target may have moved ``depth_speed`` mm per frame since, which widens the
     depth Gaussian and the occluder margin (None: fresh templates).
+    ``body_template [B - 1]``: the whole-body colour template; ``l_body [N, S]`` scores
+    the foreground of the cells visible in each flag state of ``body_states`` (None:
+    zeros).
     """
     height, width = obs.foreground.shape
     nz, zlo, zhi = config.depth_bins, *config.depth_range
@@ -893,11 +947,21 @@ def cell_terms(
     near_thr = mu - margin
     area = _clipped_area(rects, width, height)
 
-    def colour_stats(counts: Array) -> Array:  # [m, C, B] -> [m, C, 3]
+    vis_states = body_states(config)  # [S, C]
+    n_states = vis_states.shape[0]
+
+    def colour_stats(counts: Array) -> Array:  # [m, C, B] -> [m, C, 3 (+ S)]
         total = jnp.sum(counts, axis=-1)
         bc = jnp.sum(jnp.sqrt(counts) * sqrt_q, axis=-1) * jax.lax.rsqrt(jnp.maximum(total, 1.0))
         d2 = jnp.where(total > 0, jnp.clip(1.0 - bc, 0.0, 1.0), 1.0)
-        return jnp.stack([total, d2, counts[..., -1]], axis=-1)
+        out = jnp.stack([total, d2, counts[..., -1]], axis=-1)
+        if body_template is None:
+            return out
+        # Pooled inside the reduction, so the [N, C, B] counts never exist at once.
+        l_body = body_log_likelihood(params, body_template, counts, vis_states, config)
+        return jnp.concatenate(
+            [out, jnp.broadcast_to(l_body[:, None, :], (*out.shape[:2], n_states))], axis=-1
+        )
 
     def depth_stats(counts: Array) -> Array:  # [m, C, Z] -> [m, C, 3]
         med, total = histogram_quantile(counts, nz, zlo, zhi)
@@ -938,6 +1002,11 @@ def cell_terms(
     fg_count = cs[..., 0] - (cs[..., 2] if config.background_bin else 0.0)
     ratio = jnp.where(area > 0, fg_count / jnp.maximum(area, 1.0), 0.0)
     d2 = cs[..., 1]
+    l_body = (
+        jnp.zeros((boxes_xywh.shape[0], n_states), jnp.float32)
+        if body_template is None
+        else cs[:, 0, 3:]
+    )
     med, n_depth, near = ds[..., 0], ds[..., 1], ds[..., 2]
 
     l_beta = jnp.maximum(
@@ -967,8 +1036,52 @@ def cell_terms(
         area=area,
         l_border=l_border,
         border_ratio=strip_ratio,
+        l_body=l_body,
         windowed=uses_window((height, width), rects, config.window),
     )
+
+
+def body_states(config: RGBDConfig) -> Array:
+    """``[S, C]`` visibility (1: visible) of the cells in each state the body term scores:
+    every flag state of the full transition form, else one state with every cell visible."""
+    c = config.n_cells
+    if config.occlusion and config.full_transition:
+        return 1.0 - flag_bits(c)
+    return jnp.ones((1, c), jnp.float32)
+
+
+def body_log_likelihood(
+    params: RGBDParams, template: Array, counts: Array, vis: Array, config: RGBDConfig
+) -> Array:
+    """Body colour term ``[m, S]`` of cell colour counts ``[m, C, B]`` (module docstring).
+
+    For each state ``s`` of ``vis [S, C]`` the foreground counts of its visible cells are
+    pooled and compared with ``template [B - 1]`` (normalised): ``max(-(d^2 - body_ref^2)
+    / (2 sigma_body^2), body_floor)``; a state with fewer than ``body_min_pixels`` visible
+    foreground pixels scores 0.
+    """
+    n_fg = config.n_bins - 1 if config.background_bin else config.n_bins
+    fg = counts[..., :n_fg]  # [m, C, F]
+    pooled = jnp.einsum("sc,mcf->msf", vis, fg)  # [m, S, F]
+    total = jnp.sum(pooled, axis=-1)
+    # The double where keeps gradients (tuning through the template's learning) finite.
+    sqrt_t = jnp.where(template > 0, jnp.sqrt(jnp.where(template > 0, template, 1.0)), 0.0)
+    bc = jnp.sum(jnp.sqrt(pooled) * sqrt_t, axis=-1) * jax.lax.rsqrt(jnp.maximum(total, 1.0))
+    d2 = jnp.clip(1.0 - bc, 0.0, 1.0)
+    l_body = jnp.maximum(
+        -(d2 - params.body_ref**2) / (2.0 * params.sigma_body**2), params.body_floor
+    )
+    return jnp.where(total >= params.body_min_pixels, l_body, 0.0)
+
+
+def body_histogram(config: RGBDConfig, obs: _Observation, box_xywh: Array) -> tuple[Array, Array]:
+    """Normalised foreground colour histogram ``[B - 1]`` of one box and its pixel count."""
+    rect = box_ops.xywh_to_rect(box_xywh)[None]
+    hist = box_histograms(obs.colour_bins, rect, config.n_bins)[0]
+    n_fg = config.n_bins - 1 if config.background_bin else config.n_bins
+    fg = hist[:n_fg]
+    total = jnp.sum(fg)
+    return fg / jnp.maximum(total, 1.0), total
 
 
 def box_log_density(params: RGBDParams, fg_sum: Array, area_sum: Array) -> Array:
@@ -1396,6 +1509,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         )
         obs = _observe(config, params, frame, bg)
         hist, med, _ = _cell_templates(config, obs, box)
+        body_hist, body_count = body_histogram(config, obs, box)
         cc = box_ops.xywh_to_cxcywh(box)
         one = jnp.array([cc[0], cc[1], 0.0, 0.0, cc[2], cc[3], 0.0, 0.0], jnp.float32)
         particles = jnp.tile(one, (n, 1))
@@ -1423,6 +1537,10 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
                 if background is None
                 else beta_fill_shift(params, initial_fill(obs.foreground, box))
             ),
+            body_template=body_hist,
+            # An empty first box counts for nothing: the first frame learnt replaces it.
+            body_frames=jnp.where(body_count > 0, 0, -1).astype(jnp.int32),
+            body_steps=jnp.zeros((), jnp.int32),
         )
 
     def target_depth(state: RGBDState) -> Array:
@@ -1733,6 +1851,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             obs,
             boxes_xywh,
             state.depth_age,
+            state.body_template if config.body_term else None,
         )
         l_vis, l_occ, fg_count, area = terms.l_vis, terms.l_occ, terms.fg_count, terms.area
         box_term = config.box_term and c > 1
@@ -1746,13 +1865,13 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
                 vis = 1.0 - flag_bits(c)  # [S, C]: 1 where the cell is visible
                 sides = jnp.asarray(side_cells(k), jnp.float32)  # [4, C]
                 side_on = (vis @ sides.T) >= jnp.sum(sides, axis=-1)  # [S, 4]
-                l_box = side_sum @ side_on.astype(jnp.float32).T  # [N, S]
+                l_box = side_sum @ side_on.astype(jnp.float32).T + terms.l_body  # [N, S]
                 if box_term:
                     l_box = l_box + box_log_density(bparams, fg_count @ vis.T, area @ vis.T)
             else:
                 # Factorised flags: the multi-cell terms cannot be split per cell;
                 # they are scored as if every cell were visible.
-                log_extra = jnp.sum(side_sum, axis=-1)
+                log_extra = jnp.sum(side_sum, axis=-1) + terms.l_body[:, 0]
                 if box_term:
                     log_extra = log_extra + box_log_density(
                         bparams, jnp.sum(fg_count, axis=-1), jnp.sum(area, axis=-1)
@@ -1763,7 +1882,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             if not config.full_transition:
                 log_lik = log_lik + log_extra
         else:
-            log_lik = jnp.sum(l_vis, axis=-1) + jnp.sum(side_sum, axis=-1)
+            log_lik = jnp.sum(l_vis, axis=-1) + jnp.sum(side_sum, axis=-1) + terms.l_body[:, 0]
             if box_term:
                 log_lik = log_lik + box_log_density(
                     bparams, jnp.sum(fg_count, axis=-1), jnp.sum(area, axis=-1)
@@ -1889,6 +2008,22 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             depth_velocity = jnp.clip(depth_velocity, -params.max_drift, params.max_drift)
         else:
             depth_velocity = state.depth_velocity
+        body_template, body_frames = state.body_template, state.body_frames
+        if config.body_term:
+            # The whole-body template learns from unoccluded frames only: a running mean
+            # over the first ``body_warmup`` (the initial box may show a part of the
+            # person), then forgetting at ``body_rate``.
+            body_hist, body_count = body_histogram(config, obs, report)
+            learn = (~lost) & (jnp.max(vote) < 0.1) & (body_count >= params.body_min_pixels)
+            warm = state.body_steps < params.body_warmup
+            n_seen = body_frames.astype(jnp.float32)
+            rate = jnp.maximum(1.0 / (n_seen + 2.0), params.body_rate)
+            rate = jnp.where(warm, rate, params.body_rate)
+            rate = jnp.where(learn, rate, 0.0)
+            mixed = (1.0 - rate) * body_template + rate * body_hist
+            body_template = mixed / jnp.maximum(jnp.sum(mixed), 1e-12)
+            body_frames = body_frames + learn.astype(jnp.int32)
+        body_steps = jnp.minimum(state.body_steps + 1, 1 << 30)
         background = state.background
         if config.background_update:
             background = update_background(
@@ -1916,6 +2051,9 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             reach=state.reach,
             occluder_depth=occluder_depth,
             fill_shift=state.fill_shift,
+            body_template=body_template,
+            body_frames=body_frames,
+            body_steps=body_steps,
         )
         info = RGBDInfo(
             estimate=est,

@@ -23,8 +23,10 @@ from cpf_jax.rgbd import (
     RGBDState,
     _flag_posterior,
     _main_run,
+    _Observation,
     _observe,
     beta_fill_shift,
+    body_states,
     build_rgbd_filter,
     cell_foreground_ratios,
     cell_terms,
@@ -262,6 +264,85 @@ def test_fill_adapted_moves_the_beta_means_and_keeps_their_concentration(mode):
     np.testing.assert_allclose(np.asarray(off.beta_a), a0, rtol=1e-5)
 
 
+def _body_reference(bins, boxes, template, vis, params, n_fg):
+    """NumPy: pooled foreground histogram of the visible cells per state -> body term."""
+    sigma, ref = float(params.sigma_body), float(params.body_ref)
+    floor, min_px = float(params.body_floor), float(params.body_min_pixels)
+    out = np.zeros((len(boxes), len(vis)))
+    for n, (x, y, w, h) in enumerate(boxes):
+        counts = []
+        for r in range(2):
+            for c in range(2):  # row-major cells, corners rounded half-up
+                x0, x1 = (int(np.floor(x + w * f + 0.5)) for f in (c / 2, (c + 1) / 2))
+                y0, y1 = (int(np.floor(y + h * f + 0.5)) for f in (r / 2, (r + 1) / 2))
+                cell = bins[max(y0, 0) : max(min(y1, H), 0), max(x0, 0) : max(min(x1, W), 0)]
+                counts.append(np.bincount(cell.ravel(), minlength=n_fg + 1)[:n_fg])
+        counts = np.array(counts, float)
+        for s, v in enumerate(vis):
+            pooled = (v[:, None] * counts).sum(0)
+            if pooled.sum() < min_px:
+                continue
+            d2 = np.clip(1 - np.sum(np.sqrt(pooled / pooled.sum() * template)), 0, 1)
+            out[n, s] = max(-(d2 - ref**2) / (2 * sigma**2), floor)
+    return out
+
+
+@pytest.mark.parametrize("variant", ["grid-occlusion", "grid"])
+@pytest.mark.parametrize("mode", ["jit", "vmap"])
+def test_body_term_pools_the_visible_cells_like_numpy(mode, variant):
+    cfg = RGBDConfig(variant=variant, n_particles=8, bins=(4, 4, 2))
+    params = default_rgbd_params(cfg)
+    n_fg = cfg.n_bins - 1
+    rng = np.random.default_rng(7)
+    # A person-like blob of a few colours on background (the extra bin), some noise.
+    bins = np.full((2, H, W), n_fg, np.int32)
+    bins[:, 30:100, 50:90] = rng.choice([3, 7, 12, 20], size=(2, 70, 40))
+    bins[:, 60:100, 50:90] = rng.choice([20, 25, 30], size=(2, 40, 40))
+    bins[rng.uniform(size=bins.shape) < 0.05] = rng.integers(0, n_fg, size=1)[0]
+    # Inside, over the blob's edge, partly and wholly outside the frame, empty, tiny.
+    boxes = np.array(
+        [
+            [50, 30, 40, 70],
+            [40, 20, 60, 90],
+            [70, 60, 40, 40],
+            [-20, -10, 80, 60],
+            [150, 100, 30, 40],
+            [200, 10, 20, 20],
+            [60, 50, 0, 10],
+            [55, 35, 6, 6],
+        ],
+        np.float32,
+    )
+    templates = rng.dirichlet(np.full(n_fg, 0.3), size=2).astype(np.float32)
+    vis = np.asarray(body_states(cfg))
+    assert vis.shape == ((16, 4) if variant == "grid-occlusion" else (1, 4))
+
+    def l_body(b, tmpl):
+        obs = _Observation(b, jnp.full(b.shape, -1, jnp.int32), b < n_fg)
+        terms = cell_terms(
+            cfg,
+            params,
+            jnp.full((4, cfg.n_bins), 1.0 / cfg.n_bins),
+            jnp.zeros(4),
+            obs,
+            jnp.asarray(boxes),
+            None,
+            tmpl,
+        )
+        return terms.l_body
+
+    if mode == "jit":
+        got = [np.asarray(jax.jit(l_body)(bins[i], templates[i])) for i in range(2)]
+    else:
+        got = list(np.asarray(jax.jit(jax.vmap(l_body))(bins, templates)))
+    for i in range(2):
+        want = _body_reference(bins[i], boxes, templates[i], vis, params, n_fg)
+        np.testing.assert_allclose(got[i], want, atol=2e-4, err_msg=f"frame {i}")
+        # The test means something: the states differ, and some boxes score below zero.
+        assert np.ptp(want[0]) > 0.1 or variant == "grid"
+        assert (want < -0.5).any() and (want == 0).any()
+
+
 # -- occlusion flags ------------------------------------------------------------------------
 
 
@@ -448,6 +529,53 @@ def test_template_update_only_in_cells_voted_visible(toy):
             assert not changed[voted].any()  # eq. 8: occluded cells keep their template
             checked += 1
     assert checked >= 3  # the partial occlusion (t >= 10) was voted in some frames
+
+
+def test_body_template_learns_a_running_mean_then_slowly_and_never_while_occluded(toy):
+    frames, gt, bg = toy
+    cfg = _config("grid-occlusion")
+    filt = build_rgbd_filter(cfg)
+    params = default_rgbd_params(cfg)._replace(sigma_rgb=jnp.float32(SIGMA_RGB_TEST))
+    step = jax.jit(filt.step)
+    obs_of = jax.jit(lambda f, b: _observe(cfg, params, f, b))
+    state = filt.init(
+        params, jax.random.PRNGKey(0), Frame(frames.colour[0], frames.depth[0]), gt[0], bg
+    )
+    n_fg = cfg.n_bins - 1
+
+    def histogram(t, box):  # NumPy: normalised foreground colours of a box
+        bins = np.asarray(obs_of(Frame(frames.colour[t], frames.depth[t]), state.background)[0])
+        x0, y0, x1, y1 = (int(np.floor(v + 0.5)) for v in (*box[:2], *(box[:2] + box[2:])))
+        cut = bins[max(y0, 0) : max(y1, 0), max(x0, 0) : max(x1, 0)].ravel()
+        h = np.bincount(cut[cut < n_fg], minlength=n_fg).astype(float)
+        return h / max(h.sum(), 1)
+
+    want = histogram(0, gt[0])
+    np.testing.assert_allclose(np.asarray(state.body_template), want, atol=1e-6)
+    # The toy figure's colours hardly change: start from a flat template so that the
+    # learning rate shows.
+    state = state._replace(body_template=jnp.full((n_fg,), 1.0 / n_fg))
+    learnt, frozen = 0, 0
+    for t in range(1, 40):
+        before = np.asarray(state.body_template)
+        n_before = int(state.body_frames)
+        state, info = step(
+            params, jax.random.PRNGKey(t), state, Frame(frames.colour[t], frames.depth[t])
+        )
+        after = np.asarray(state.body_template)
+        assert after.sum() == pytest.approx(1.0, abs=1e-5)
+        if int(state.body_frames) == n_before:
+            # Not learnt: any cell voted (partial occlusion from t = 9), or lost.
+            np.testing.assert_allclose(after, before, atol=1e-7)
+            frozen += bool(np.any(np.asarray(info.vote) > 0.1) or bool(info.lost))
+            continue
+        assert not bool(info.lost) and np.max(np.asarray(info.vote)) < 0.1
+        # A running mean over the warm-up steps, then the slow rate.
+        rate = 1.0 / (n_before + 2.0) if t <= float(params.body_warmup) else float(params.body_rate)
+        mixed = (1 - rate) * before + rate * histogram(t, np.asarray(info.report))
+        np.testing.assert_allclose(after, mixed / mixed.sum(), atol=2e-5)
+        learnt += 1
+    assert learnt >= 5 and frozen >= 5  # both branches ran
 
 
 def _main_run_reference(counts, kept, gap):
