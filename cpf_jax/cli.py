@@ -251,6 +251,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--no-hierarchical", action="store_true", help="plain sampling instead of motion-guided"
     )
+    p.add_argument(
+        "--no-body-term",
+        action="store_true",
+        help="RGB-D models: no whole-body colour term (the paper's likelihood alone)",
+    )
     p.add_argument("--estimator", choices=("mean", "map", "robust"), default="mean")
     p.add_argument("--resampler", choices=tuple(SCHEMES), default="systematic")
     p.add_argument("--sigma", type=float, default=None, help="likelihood width (default 0.15)")
@@ -440,6 +445,8 @@ def _model_options(args: argparse.Namespace) -> tuple[dict, dict]:
         raise UsageError(
             f"--contrast, --unseen and --layout* apply to --model rgb, not {args.model!r}"
         )
+    if args.no_body_term and args.model == "rgb":
+        raise UsageError("--no-body-term applies to the RGB-D models (--model rgbd|grid|...)")
     return config_kw, colour_kw
 
 
@@ -529,6 +536,7 @@ def _track(args: argparse.Namespace, source, options: tuple[dict, dict]) -> int:
             n_particles=args.particles,
             hierarchical=not args.no_hierarchical,
             resampler=args.resampler,
+            body_term=not args.no_body_term,
             **config_kw,
         ).with_window((float(box[2]), float(box[3])), frame_hw)
         params = default_rgbd_params(config)

@@ -1041,32 +1041,49 @@ def cell_terms(
     )
 
 
-def body_states(config: RGBDConfig) -> Array:
-    """``[S, C]`` visibility (1: visible) of the cells in each state the body term scores:
-    every flag state of the full transition form, else one state with every cell visible."""
+def body_states(config: RGBDConfig) -> np.ndarray:
+    """``[S, C]`` visibility (1: visible; static) of the cells in each state the body term
+    scores: every flag state of the full transition form (state ``s`` has cell ``i``
+    occluded when bit ``i`` of ``s`` is set, as ``flag_bits``), else one state with every
+    cell visible."""
     c = config.n_cells
     if config.occlusion and config.full_transition:
-        return 1.0 - flag_bits(c)
-    return jnp.ones((1, c), jnp.float32)
+        bits = (np.arange(2**c)[:, None] >> np.arange(c)[None, :]) & 1
+        return (1 - bits).astype(np.float32)
+    return np.ones((1, c), np.float32)
 
 
 def body_log_likelihood(
-    params: RGBDParams, template: Array, counts: Array, vis: Array, config: RGBDConfig
+    params: RGBDParams, template: Array, counts: Array, vis: np.ndarray, config: RGBDConfig
 ) -> Array:
     """Body colour term ``[m, S]`` of cell colour counts ``[m, C, B]`` (module docstring).
 
-    For each state ``s`` of ``vis [S, C]`` the foreground counts of its visible cells are
-    pooled and compared with ``template [B - 1]`` (normalised): ``max(-(d^2 - body_ref^2)
-    / (2 sigma_body^2), body_floor)``; a state with fewer than ``body_min_pixels`` visible
-    foreground pixels scores 0.
+    For each state ``s`` of ``vis [S, C]`` (static 0/1) the foreground counts of its
+    visible cells are pooled and compared with ``template [B - 1]`` (normalised):
+    ``max(-(d^2 - body_ref^2) / (2 sigma_body^2), body_floor)``; a state with fewer than
+    ``body_min_pixels`` visible foreground pixels scores 0.
     """
     n_fg = config.n_bins - 1 if config.background_bin else config.n_bins
     fg = counts[..., :n_fg]  # [m, C, F]
-    pooled = jnp.einsum("sc,mcf->msf", vis, fg)  # [m, S, F]
-    total = jnp.sum(pooled, axis=-1)
     # The double where keeps gradients (tuning through the template's learning) finite.
     sqrt_t = jnp.where(template > 0, jnp.sqrt(jnp.where(template > 0, template, 1.0)), 0.0)
-    bc = jnp.sum(jnp.sqrt(pooled) * sqrt_t, axis=-1) * jax.lax.rsqrt(jnp.maximum(total, 1.0))
+    vis = np.asarray(vis)
+    if len(vis) <= 64:
+        # One fused sum per state over its visible cells, unrolled: 3x faster on a CPU
+        # than one einsum over every state (20 against 61 ms for 10,000 boxes of 2 x 2
+        # cells), which lays out an [m, S, F] tensor first.
+        bcs, totals = [], []
+        for row in vis:
+            cells = [fg[:, i] for i in np.flatnonzero(row)]
+            pooled = sum(cells[1:], cells[0]) if cells else jnp.zeros_like(fg[:, 0])
+            totals.append(jnp.sum(pooled, axis=-1))
+            bcs.append(jnp.sum(jnp.sqrt(pooled) * sqrt_t, axis=-1))
+        total, bc = jnp.stack(totals, axis=-1), jnp.stack(bcs, axis=-1)  # [m, S]
+    else:  # a full transition over many cells: not unrolled
+        pooled = jnp.einsum("sc,mcf->msf", vis, fg)
+        total = jnp.sum(pooled, axis=-1)
+        bc = jnp.sum(jnp.sqrt(pooled) * sqrt_t, axis=-1)
+    bc = bc * jax.lax.rsqrt(jnp.maximum(total, 1.0))
     d2 = jnp.clip(1.0 - bc, 0.0, 1.0)
     l_body = jnp.maximum(
         -(d2 - params.body_ref**2) / (2.0 * params.sigma_body**2), params.body_floor

@@ -116,6 +116,7 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path, monkeypat
         (["{folder}", "--model", "rgbd", "--unseen", "neutral"], "--model rgb"),
         (["{folder}", "--contrast", "mixture", "--unseen", "neutral"], "linear contrast"),
         (["{folder}", "--model", "rgbd", "--background", "empty"], "empty-scene"),
+        (["{folder}", "--no-body-term"], "RGB-D models"),
         (["{folder}", "--plot", "run.jpg"], "--plot"),
     ],
 )
@@ -196,7 +197,7 @@ def test_default_background_is_the_recordings_empty_frames(tmp_path, capsys):
     assert main([*argv, "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "note: background: median of the 5 of 15 frames with the least foreground (0-4;" in out
-    assert main([*argv, "--background", "15", "--no-progress"]) == 0
+    assert main([*argv, "--background", "15", "--no-body-term", "--no-progress"]) == 0
     assert "background: median" not in capsys.readouterr().out
 
 

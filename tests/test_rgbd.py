@@ -264,17 +264,17 @@ def test_fill_adapted_moves_the_beta_means_and_keeps_their_concentration(mode):
     np.testing.assert_allclose(np.asarray(off.beta_a), a0, rtol=1e-5)
 
 
-def _body_reference(bins, boxes, template, vis, params, n_fg):
+def _body_reference(bins, boxes, template, vis, params, n_fg, k=2):
     """NumPy: pooled foreground histogram of the visible cells per state -> body term."""
     sigma, ref = float(params.sigma_body), float(params.body_ref)
     floor, min_px = float(params.body_floor), float(params.body_min_pixels)
     out = np.zeros((len(boxes), len(vis)))
     for n, (x, y, w, h) in enumerate(boxes):
         counts = []
-        for r in range(2):
-            for c in range(2):  # row-major cells, corners rounded half-up
-                x0, x1 = (int(np.floor(x + w * f + 0.5)) for f in (c / 2, (c + 1) / 2))
-                y0, y1 = (int(np.floor(y + h * f + 0.5)) for f in (r / 2, (r + 1) / 2))
+        for r in range(k):
+            for c in range(k):  # row-major cells, corners rounded half-up
+                x0, x1 = (int(np.floor(x + w * f + 0.5)) for f in (c / k, (c + 1) / k))
+                y0, y1 = (int(np.floor(y + h * f + 0.5)) for f in (r / k, (r + 1) / k))
                 cell = bins[max(y0, 0) : max(min(y1, H), 0), max(x0, 0) : max(min(x1, W), 0)]
                 counts.append(np.bincount(cell.ravel(), minlength=n_fg + 1)[:n_fg])
         counts = np.array(counts, float)
@@ -287,10 +287,18 @@ def _body_reference(bins, boxes, template, vis, params, n_fg):
     return out
 
 
-@pytest.mark.parametrize("variant", ["grid-occlusion", "grid"])
+@pytest.mark.parametrize("variant", ["grid-occlusion", "grid", "grid-occlusion-3x3"])
 @pytest.mark.parametrize("mode", ["jit", "vmap"])
 def test_body_term_pools_the_visible_cells_like_numpy(mode, variant):
-    cfg = RGBDConfig(variant=variant, n_particles=8, bins=(4, 4, 2))
+    # 3 x 3 cells with the full transition: 512 states, the einsum path (not unrolled).
+    k = 3 if variant.endswith("3x3") else 2
+    cfg = RGBDConfig(
+        variant=variant.removesuffix("-3x3"),
+        n_particles=8,
+        bins=(4, 4, 2),
+        grid=k,
+        flag_transition="full" if k == 3 else "auto",
+    )
     params = default_rgbd_params(cfg)
     n_fg = cfg.n_bins - 1
     rng = np.random.default_rng(7)
@@ -315,15 +323,16 @@ def test_body_term_pools_the_visible_cells_like_numpy(mode, variant):
     )
     templates = rng.dirichlet(np.full(n_fg, 0.3), size=2).astype(np.float32)
     vis = np.asarray(body_states(cfg))
-    assert vis.shape == ((16, 4) if variant == "grid-occlusion" else (1, 4))
+    c = k * k
+    assert vis.shape == ((2**c, c) if variant.startswith("grid-occlusion") else (1, c))
 
     def l_body(b, tmpl):
         obs = _Observation(b, jnp.full(b.shape, -1, jnp.int32), b < n_fg)
         terms = cell_terms(
             cfg,
             params,
-            jnp.full((4, cfg.n_bins), 1.0 / cfg.n_bins),
-            jnp.zeros(4),
+            jnp.full((c, cfg.n_bins), 1.0 / cfg.n_bins),
+            jnp.zeros(c),
             obs,
             jnp.asarray(boxes),
             None,
@@ -336,7 +345,7 @@ def test_body_term_pools_the_visible_cells_like_numpy(mode, variant):
     else:
         got = list(np.asarray(jax.jit(jax.vmap(l_body))(bins, templates)))
     for i in range(2):
-        want = _body_reference(bins[i], boxes, templates[i], vis, params, n_fg)
+        want = _body_reference(bins[i], boxes, templates[i], vis, params, n_fg, k)
         np.testing.assert_allclose(got[i], want, atol=2e-4, err_msg=f"frame {i}")
         # The test means something: the states differ, and some boxes score below zero.
         assert np.ptp(want[0]) > 0.1 or variant == "grid"
