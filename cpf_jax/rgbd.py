@@ -2028,8 +2028,8 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         body_template, body_frames = state.body_template, state.body_frames
         if config.body_term:
             # The whole-body template learns from unoccluded frames only: a running mean
-            # over the first ``body_warmup`` (the initial box may show a part of the
-            # person), then forgetting at ``body_rate``.
+            # of those among the first ``body_warmup`` steps (the initial box may show a
+            # part of the person), then forgetting at ``body_rate``.
             body_hist, body_count = body_histogram(config, obs, report)
             learn = (~lost) & (jnp.max(vote) < 0.1) & (body_count >= params.body_min_pixels)
             warm = state.body_steps < params.body_warmup
