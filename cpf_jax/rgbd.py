@@ -468,6 +468,11 @@ class RGBDConfig:
         return n_bins_of(self.bins) + (1 if self.background_bin else 0)
 
     @property
+    def n_fg_bins(self) -> int:
+        """The colour bins of foreground pixels (``n_bins`` without the background bin)."""
+        return n_bins_of(self.bins)
+
+    @property
     def colour_config(self) -> ColourConfig:
         base = self.colour or ColourConfig(
             n_particles=self.n_particles, model=self.model, hierarchical=self.hierarchical
@@ -770,10 +775,14 @@ class RGBDInfo(NamedTuple):
 # ----------------------------------------------------------------------------- flags
 
 
+def _flag_bits_np(n_cells: int) -> np.ndarray:
+    s = np.arange(1 << n_cells)[:, None]
+    return ((s >> np.arange(n_cells)[None]) & 1).astype(np.float32)
+
+
 def flag_bits(n_cells: int) -> Array:
     """``[2^C, C] float32``: bit ``i`` of every flag state (state index = bit mask)."""
-    s = np.arange(1 << n_cells)[:, None]
-    return jnp.asarray((s >> np.arange(n_cells)[None]) & 1, jnp.float32)
+    return jnp.asarray(_flag_bits_np(n_cells))
 
 
 def kronecker_transition(p_occlude: Array, p_reveal: Array, n_cells: int) -> Array:
@@ -981,7 +990,7 @@ def cell_terms(
         have = mu > 0
         mu_box = jnp.sum(jnp.where(have, mu, 0.0)) / jnp.maximum(jnp.sum(have), 1)
         margin_box = jnp.sum(jnp.where(have, margin, 0.0)) / jnp.maximum(jnp.sum(have), 1)
-        n_fg = config.n_bins - 1 if config.background_bin else config.n_bins
+        n_fg = config.n_fg_bins
         table, frac = strip_table(
             obs.colour_bins, n_fg, obs.depth_bins, mu_box - margin_box, nz, zlo, zhi
         )
@@ -1046,11 +1055,9 @@ def body_states(config: RGBDConfig) -> np.ndarray:
     scores: every flag state of the full transition form (state ``s`` has cell ``i``
     occluded when bit ``i`` of ``s`` is set, as ``flag_bits``), else one state with every
     cell visible."""
-    c = config.n_cells
     if config.occlusion and config.full_transition:
-        bits = (np.arange(2**c)[:, None] >> np.arange(c)[None, :]) & 1
-        return (1 - bits).astype(np.float32)
-    return np.ones((1, c), np.float32)
+        return 1.0 - _flag_bits_np(config.n_cells)
+    return np.ones((1, config.n_cells), np.float32)
 
 
 def body_log_likelihood(
@@ -1063,7 +1070,7 @@ def body_log_likelihood(
     ``max(-(d^2 - body_ref^2) / (2 sigma_body^2), body_floor)``; a state with fewer than
     ``body_min_pixels`` visible foreground pixels scores 0.
     """
-    n_fg = config.n_bins - 1 if config.background_bin else config.n_bins
+    n_fg = config.n_fg_bins
     fg = counts[..., :n_fg]  # [m, C, F]
     # The double where keeps gradients (tuning through the template's learning) finite.
     sqrt_t = jnp.where(template > 0, jnp.sqrt(jnp.where(template > 0, template, 1.0)), 0.0)
@@ -1095,7 +1102,7 @@ def body_histogram(config: RGBDConfig, obs: _Observation, box_xywh: Array) -> tu
     """Normalised foreground colour histogram ``[B - 1]`` of one box and its pixel count."""
     rect = box_ops.xywh_to_rect(box_xywh)[None]
     hist = box_histograms(obs.colour_bins, rect, config.n_bins)[0]
-    n_fg = config.n_bins - 1 if config.background_bin else config.n_bins
+    n_fg = config.n_fg_bins
     fg = hist[:n_fg]
     total = jnp.sum(fg)
     return fg / jnp.maximum(total, 1.0), total
