@@ -133,6 +133,17 @@ the particles search a wider area. Templates are updated with the forgetting
 factor ``lambda = 1 - template_rate`` (colour) / ``1 - depth_rate`` (depth),
 eq. 7, only in cells voted not occluded; occluded cells keep theirs (eq. 8).
 
+Motion model
+------------
+The colour layer's (``config.model``, ``config.hierarchical``; ``cpf_jax.dynamics``) with
+calmer box sizes (``RGBD_TAU``) and one change: the size velocities ``(vw, vh)`` keep
+only ``size_velocity_decay`` of themselves per frame (0.9; 1 is the plain AR model, in
+which they random-walk). A person's box narrows and widens with his gait and as he
+turns; with a random-walk velocity, a cloud that had collapsed (ESS 2-8 of 150) while
+his silhouette narrowed kept shrinking by its inherited 3 px/frame after it widened
+again, and no particle was left wide enough to find him (synthetic occlusion_person,
+scene seed 0, filter key 1: MOTA 50.0 without the decay, 96.0 with it).
+
 Data-driven proposal (``"rgbd"`` and the grid variants; ``detector_fraction``)
 -----------------------------------------------------------------------------
 A person near the camera moves half a box or more per frame, far beyond the motion
@@ -556,6 +567,8 @@ class RGBDParams(NamedTuple):
     aspect_mean: Array  # log-normal prior on width / height (config.aspect_prior)
     aspect_sigma: Array
     tau: Array  # [8] motion noise (dynamics)
+    # Share of the size velocities kept per frame (1: the plain AR model's random walk)
+    size_velocity_decay: Array
     motion: MotionParams
     fg_depth_abs: Array  # foreground threshold, mm
     fg_depth_rel: Array  # foreground threshold, fraction of the background depth
@@ -623,6 +636,7 @@ PARAM_CONSTRAINTS = RGBDParams(
     aspect_mean="softplus",
     aspect_sigma="softplus",
     tau="softplus",
+    size_velocity_decay="sigmoid",
     motion=MotionParams("sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid"),
     fg_depth_abs="softplus",
     fg_depth_rel="softplus",
@@ -718,6 +732,7 @@ def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
         aspect_mean=f(0.41),
         aspect_sigma=f(0.3),
         tau=jnp.asarray(RGBD_TAU, jnp.float32),
+        size_velocity_decay=f(0.9),
         motion=default_motion_params(),
         fg_depth_abs=f(150.0),
         fg_depth_rel=f(0.05),
@@ -1831,6 +1846,8 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             hierarchical=config.hierarchical,
             scale=scale,
         )
+        # The size velocities forget ("Motion model" in the module docstring).
+        particles = particles.at[:, 6:8].multiply(params.size_velocity_decay)
         if config.occlusion:
             # Search a wider area while the target is voted occluded (paper 2.1, Fig. 5).
             spread = jnp.minimum(
