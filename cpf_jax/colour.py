@@ -193,10 +193,11 @@ does not help: 96.9 plain, 96.5 guided at N = 50. On the tables' own scenes
 (``colour_tables.py``, seeds 0-2) the walking mean / worst at N = 100 went from
 98.3 / 96.6 to 98.7 / 97.4, and at N = 50 guided and plain tie (97.6 both,
 ``table_3_5_default``): the gain is small and shows mostly at N = 100.
-With ``model = "ar1"`` the particles' size velocities ``(w', h')`` keep
-``params.size_velocity_decay`` (0.9) of themselves each frame, after the
-propagation: a first-order AR velocity instead of the thesis's undamped one
-(eqs. 3.14-3.17, ``size_velocity_decay = 1``). Undamped, the velocity is a
+With the velocity models (``"ar1"``, ``"ar2"``) the particles' size velocities
+``(w', h')`` keep ``params.size_velocity_decay`` (0.9) of themselves each frame
+(``cpf_jax.dynamics.propagate``, "Damped size velocity"): under ``"ar1"`` a
+first-order AR velocity instead of the thesis's undamped one (eqs. 3.14-3.17,
+``size_velocity_decay = 1``). Undamped, the velocity is a
 random walk: a cloud that was shrinking with a narrowing silhouette keeps
 shrinking after it, and on the training scenes box heights drifted to 0.6-1.3
 of the ground truth's. Measured on scene seeds 100-101 x 3 keys, AR1 at N = 50,
@@ -473,8 +474,8 @@ class ColourParams(NamedTuple):
     template_max_distance: Array  # update only when the estimate's distance is below this
     lost_distance: Array  # best-particle distance above which the target counts as lost
     robust_radius: Array  # robust mean: window half-size as a fraction of the MAP box size
-    # "ar1": each frame the particles' size velocities (w', h') keep this share of
-    # themselves (1: the thesis's undamped velocity; module docstring, "Motion model").
+    # "ar1", "ar2": each frame the particles' size velocities (w', h') keep this share
+    # of themselves (1: the thesis's undamped velocity; module docstring, "Motion model").
     size_velocity_decay: Array
 
 
@@ -904,10 +905,9 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             scale=None if config.tau_height is None else state.particles[:, 5] / config.tau_height,
             rng=config.rng,
             guide=state.velocity if config.hierarchical else None,
-        )
-        if config.model == "ar1":
             # A damped size velocity (module docstring, "Motion model").
-            particles = particles.at[:, 6:8].multiply(params.size_velocity_decay)
+            size_velocity_decay=params.size_velocity_decay,
+        )
         if config.recovery_fraction > 0:
 
             def recover(particles: Array) -> Array:

@@ -65,6 +65,16 @@ particles drifts by ``guide`` and takes the position noise above with ``guide``
 as its motion (sizes diffuse as before). The rest diffuse around where they
 were, so a walker who stops or turns round keeps particles on him, which the
 ar1 velocity does not. Without ``guide`` the random walk is unguided.
+
+Damped size velocity (all models): ``size_velocity_decay`` (default 1, the
+thesis's models) multiplies the new state's size velocities ``(w', h')`` after
+the step, so they follow ``w'_t = decay (w'_{t-1} + n)``: a first-order AR
+velocity instead of a random walk. A cloud that was shrinking with a narrowing
+silhouette then stops shrinking after it instead of keeping its inherited
+velocity. The filters pass their ``params.size_velocity_decay`` (0.9). In
+``ar2`` the same two columns of the state are multiplied (eq. 3.26 reads them
+through ``s - s_prev``). Models without size velocities (``random_walk`` and
+the ``_fixed`` ones keep them at 0) are unaffected.
 """
 
 from __future__ import annotations
@@ -209,6 +219,7 @@ def propagate(
     scale: Array | None = None,
     rng: str = "jax",
     guide: Array | None = None,
+    size_velocity_decay: Array | float = 1.0,
 ) -> Array:
     """Draw the next particle states from the motion model; ``[N, 8] -> [N, 8]``.
 
@@ -218,6 +229,9 @@ def propagate(
     ``scale`` (``[N]``, optional) multiplies every particle's noise, e.g. by
     its box size relative to a reference so that ``tau`` is expressed for a
     reference box. Sizes are not clipped here; the filter keeps them in range.
+    ``size_velocity_decay`` (scalar, may be traced) multiplies the new size
+    velocities ``(w', h')``; 1 (default) is the thesis's undamped model (module
+    docstring, "Damped size velocity").
     """
     if model not in MODELS:
         raise ValueError(f"unknown motion model {model!r}; expected one of {MODELS}")
@@ -261,4 +275,4 @@ def propagate(
         out = out.at[:, 2:4].set(0.0).at[:, 6:8].set(0.0)
     if fixed:
         out = out.at[:, 4:6].set(particles[:, 4:6]).at[:, 6:8].set(0.0)
-    return out
+    return out.at[:, 6:8].multiply(jnp.asarray(size_velocity_decay, out.dtype))

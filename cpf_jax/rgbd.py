@@ -1845,9 +1845,9 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             model=config.model,
             hierarchical=config.hierarchical,
             scale=scale,
+            # The size velocities forget ("Motion model" in the module docstring).
+            size_velocity_decay=params.size_velocity_decay,
         )
-        # The size velocities forget ("Motion model" in the module docstring).
-        particles = particles.at[:, 6:8].multiply(params.size_velocity_decay)
         if config.occlusion:
             # Search a wider area while the target is voted occluded (paper 2.1, Fig. 5).
             spread = jnp.minimum(

@@ -28,6 +28,36 @@ def test_ar2_matches_eq_3_26_without_noise():
     np.testing.assert_allclose(out, ref, rtol=1e-6)
 
 
+@pytest.mark.parametrize("model", ["ar1", "ar2"])
+def test_size_velocity_decay_scales_only_the_new_size_velocities(model):
+    plain = np.asarray(propagate(KEY, STATE, PREV, ZERO_TAU, MP, model=model))[0]
+    damped = np.asarray(
+        propagate(KEY, STATE, PREV, ZERO_TAU, MP, model=model, size_velocity_decay=0.5)
+    )[0]
+    # w'_t = decay * (w' + n): positions, sizes and position velocities as undamped.
+    np.testing.assert_array_equal(damped[:6], plain[:6])
+    np.testing.assert_allclose(damped[6:], 0.5 * plain[6:], rtol=1e-6)
+    assert np.all(plain[6:] != 0)
+
+
+def test_size_velocity_decay_is_a_traced_parameter():
+    tau = jnp.asarray(THESIS_TAU)
+    state = jnp.tile(STATE, (64, 1))
+
+    def draw(decay):
+        return propagate(KEY, state, state, tau, MP, model="ar1", size_velocity_decay=decay)
+
+    decays = jnp.array([1.0, 0.9, 0.0])
+    batched = jax.jit(jax.vmap(draw))(decays)
+    for i, d in enumerate(np.asarray(decays)):
+        one = np.asarray(draw(jnp.float32(d)))
+        np.testing.assert_allclose(np.asarray(batched[i]), one, rtol=1e-6, atol=1e-6)
+    assert np.all(np.asarray(batched[2])[:, 6:] == 0)
+    # The gradient reaches the decay (a tuning target): d(sum w') / d decay = sum(w' + n).
+    g = jax.grad(lambda d: jnp.sum(draw(d)[:, 6:8]))(jnp.float32(0.9))
+    np.testing.assert_allclose(float(g), float(jnp.sum(draw(jnp.float32(1.0))[:, 6:8])), rtol=1e-5)
+
+
 @pytest.mark.parametrize("model", ["ar1_fixed", "ar2_fixed"])
 def test_fixed_models_keep_size(model):
     tau = jnp.asarray(THESIS_TAU) * 5
