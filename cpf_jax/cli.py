@@ -224,6 +224,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="motion model (default: random_walk for --model rgb, ar1 for the RGB-D models)",
     )
     p.add_argument(
+        "--size-velocity-decay",
+        type=float,
+        default=None,
+        metavar="D",
+        help="ar1/ar2: share of the box's size velocity kept each frame, in [0, 1] "
+        "(default 0.9; 1 is the thesis's undamped model)",
+    )
+    p.add_argument(
         "--model",
         choices=("rgb", "rgbd", "grid", "grid-occlusion"),
         default="rgb",
@@ -371,6 +379,9 @@ def _run(args: argparse.Namespace) -> int:
         raise UsageError(f"--particles must be >= 1, got {args.particles}")
     if args.sigma is not None and not args.sigma > 0:
         raise UsageError(f"--sigma must be > 0, got {args.sigma}")
+    decay = args.size_velocity_decay
+    if decay is not None and not 0.0 <= decay <= 1.0:
+        raise UsageError(f"--size-velocity-decay must be in [0, 1], got {decay}")
     if args.plot is not None and Path(args.plot).suffix.lower() != ".png":
         raise UsageError(f"--plot writes a PNG: give a .png path, got {args.plot!r}")
     if args.plot is not None:
@@ -447,7 +458,35 @@ def _model_options(args: argparse.Namespace) -> tuple[dict, dict]:
         )
     if args.no_body_term and args.model == "rgb":
         raise UsageError("--no-body-term applies to the RGB-D models (--model rgbd|grid|...)")
+    if args.size_velocity_decay is not None:
+        if args.model == "rgb":
+            from cpf_jax.colour import ColourConfig as Config
+        else:
+            from cpf_jax.rgbd import RGBDConfig as Config
+        dynamics = config_kw.get("model", Config.model)
+        if dynamics not in ("ar1", "ar2"):
+            raise UsageError(
+                f"--size-velocity-decay applies to --dynamics ar1|ar2 (the models with a "
+                f"size velocity), not {dynamics!r}"
+            )
     return config_kw, colour_kw
+
+
+def param_options(args: argparse.Namespace, params):
+    """``params`` (``ColourParams`` or ``RGBDParams``) with the command line's parameter
+    options (``--sigma``, ``--layout-weight``, ``--size-velocity-decay``) applied."""
+    import jax.numpy as jnp
+
+    from cpf_jax.colour import ColourParams
+
+    colour = isinstance(params, ColourParams)
+    if args.sigma is not None:
+        params = params._replace(**{"sigma" if colour else "sigma_rgb": jnp.float32(args.sigma)})
+    if args.layout_weight is not None:  # --model rgb only (checked in _model_options)
+        params = params._replace(layout_weight=jnp.float32(args.layout_weight))
+    if args.size_velocity_decay is not None:
+        params = params._replace(size_velocity_decay=jnp.float32(args.size_velocity_decay))
+    return params
 
 
 def _track(args: argparse.Namespace, source, options: tuple[dict, dict]) -> int:
@@ -522,11 +561,7 @@ def _track(args: argparse.Namespace, source, options: tuple[dict, dict]) -> int:
             **config_kw,
             **colour_kw,
         ).with_window((float(box[2]), float(box[3])), frame_hw)
-        params = default_colour_params()
-        if args.sigma is not None:
-            params = params._replace(sigma=jnp.float32(args.sigma))
-        if args.layout_weight is not None:
-            params = params._replace(layout_weight=jnp.float32(args.layout_weight))
+        params = param_options(args, default_colour_params())
         filt = build_colour_filter(config)
     else:
         from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
@@ -539,9 +574,7 @@ def _track(args: argparse.Namespace, source, options: tuple[dict, dict]) -> int:
             body_term=not args.no_body_term,
             **config_kw,
         ).with_window((float(box[2]), float(box[3])), frame_hw)
-        params = default_rgbd_params(config)
-        if args.sigma is not None:
-            params = params._replace(sigma_rgb=jnp.float32(args.sigma))
+        params = param_options(args, default_rgbd_params(config))
         filt = build_rgbd_filter(config)
     cascade = None
     point_names: tuple[str, ...] = ()

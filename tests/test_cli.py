@@ -98,6 +98,36 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path, monkeypat
     assert np.isfinite(read_results(out)["boxes"]).all()
 
 
+def test_size_velocity_decay_from_the_command_line(folder, tmp_path):
+    import jax.numpy as jnp
+
+    from cpf_jax.cli import build_parser, param_options
+    from cpf_jax.colour import default_colour_params
+    from cpf_jax.rgbd import RGBDConfig, default_rgbd_params
+
+    # The option reaches both layers' parameters.
+    args = build_parser().parse_args(["x", "--size-velocity-decay", "0.25", "--sigma", "0.3"])
+    colour = param_options(args, default_colour_params())
+    assert float(colour.size_velocity_decay) == 0.25 and np.isclose(float(colour.sigma), 0.3)
+    rgbd = param_options(args, default_rgbd_params(RGBDConfig()))
+    assert float(rgbd.size_velocity_decay) == 0.25 and np.isclose(float(rgbd.sigma_rgb), 0.3)
+    assert float(default_colour_params().size_velocity_decay) == np.float32(0.9)
+
+    # And changes the track: the first step starts from zero velocities (same boxes),
+    # after it the size velocities differ (kept whole vs forgotten).
+    tracks = []
+    for decay in ("1", "0"):
+        out = tmp_path / f"decay{decay}.csv"
+        argv = [str(folder), "--max-frames", "6", "--particles", "64", "--no-progress"]
+        argv += ["--dynamics", "ar1", "--size-velocity-decay", decay, "--out", str(out)]
+        assert main(argv) == 0
+        tracks.append(read_results(out)["boxes"])
+    undamped, damped = tracks
+    np.testing.assert_array_equal(undamped[:2], damped[:2])
+    assert not np.allclose(undamped[2:], damped[2:], atol=1e-3)
+    assert jnp.isfinite(jnp.asarray(damped)).all()
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [
@@ -118,6 +148,9 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path, monkeypat
         (["{folder}", "--model", "rgbd", "--background", "empty"], "empty-scene"),
         (["{folder}", "--no-body-term"], "RGB-D models"),
         (["{folder}", "--plot", "run.jpg"], "--plot"),
+        (["{folder}", "--dynamics", "ar1", "--size-velocity-decay", "1.5"], "in [0, 1]"),
+        (["{folder}", "--size-velocity-decay", "0.5"], "not 'random_walk'"),
+        (["{folder}", "--dynamics", "ar2_fixed", "--size-velocity-decay", "0.5"], "ar1|ar2"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(folder, capsys, args, needle):
