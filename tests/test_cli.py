@@ -248,8 +248,8 @@ def test_background_option_forms():
 def test_says_when_steps_left_the_histogram_window(capsys):
     # A person walking towards the camera outgrows the window sized for the initial box:
     # the run says how many steps counted on the whole frame instead. (The AR2 model's
-    # size trend carries particles past the window: 10 of 29 steps; the damped AR1 and
-    # the default random walk leave it in 0-1 steps on this scene.)
+    # size trend carries particles past the window: 5 of 29 steps, 10 undamped; the
+    # damped AR1 and the default random walk leave it in 0-1 steps on this scene.)
     argv = ["walk_towards", "--particles", "64", "--dynamics", "ar2", "--no-progress"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
