@@ -204,10 +204,11 @@ of the ground truth's. Measured on scene seeds 100-101 x 3 keys, AR1 at N = 50,
 walking mean (2026-11-27): plain sampling 95.4 -> 98.8, motion-guided 98.2 ->
 98.8 (walk_across_fast 87.4 / 93.7 -> 95.8 / 96.9); with the layout term,
 template update and ``unseen = "neutral"``, motion-guided 91.7 -> 98.6. The
-thesis's tables (``experiments/colour_tables.py``) keep its undamped model and
-report the damped one beside it (seeds 0-2, 2026-11-27): Table 3.4's AR1 97.3
-undamped, 98.2 damped; Table 3.5 plain / motion-guided 92.0 / 93.2 undamped,
-97.7 / 98.0 damped, so damped the two score alike at N = 50.
+thesis's tables (``experiments/colour_tables.py``) keep its undamped models and
+report the damped ones beside them (seeds 0-2, 2026-11-27): Table 3.4's AR1 97.3
+undamped, 98.2 damped, its AR2 97.5 undamped, 98.3 damped; Table 3.5 plain /
+motion-guided 92.0 / 93.2 undamped, 97.7 / 98.0 damped, so damped the two score
+alike at N = 50.
 
 Lost target (documented recovery): when even the best particle's distance
 exceeds ``params.lost_distance``, or the estimate's height has collapsed below
