@@ -379,9 +379,6 @@ def _run(args: argparse.Namespace) -> int:
         raise UsageError(f"--particles must be >= 1, got {args.particles}")
     if args.sigma is not None and not args.sigma > 0:
         raise UsageError(f"--sigma must be > 0, got {args.sigma}")
-    decay = args.size_velocity_decay
-    if decay is not None and not 0.0 <= decay <= 1.0:
-        raise UsageError(f"--size-velocity-decay must be in [0, 1], got {decay}")
     if args.plot is not None and Path(args.plot).suffix.lower() != ".png":
         raise UsageError(f"--plot writes a PNG: give a .png path, got {args.plot!r}")
     if args.plot is not None:
@@ -458,13 +455,18 @@ def _model_options(args: argparse.Namespace) -> tuple[dict, dict]:
         )
     if args.no_body_term and args.model == "rgb":
         raise UsageError("--no-body-term applies to the RGB-D models (--model rgbd|grid|...)")
-    if args.size_velocity_decay is not None:
+    decay = args.size_velocity_decay
+    if decay is not None:
+        from cpf_jax.dynamics import SIZE_VELOCITY_MODELS
+
+        if not 0.0 <= decay <= 1.0:
+            raise UsageError(f"--size-velocity-decay must be in [0, 1], got {decay}")
         if args.model == "rgb":
             from cpf_jax.colour import ColourConfig as Config
         else:
             from cpf_jax.rgbd import RGBDConfig as Config
         dynamics = config_kw.get("model", Config.model)
-        if dynamics not in ("ar1", "ar2"):
+        if dynamics not in SIZE_VELOCITY_MODELS:
             raise UsageError(
                 f"--size-velocity-decay applies to --dynamics ar1|ar2 (the models with a "
                 f"size velocity), not {dynamics!r}"

@@ -91,6 +91,7 @@ __all__ = [
     "THESIS_TAU",
     "DEFAULT_TAU",
     "MODELS",
+    "SIZE_VELOCITY_MODELS",
     "RNGS",
     "MotionParams",
     "guide_frame",
@@ -106,6 +107,9 @@ THESIS_TAU = (10.0, 10.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1)
 DEFAULT_TAU = (15.0, 15.0, 0.6, 0.6, 5.5, 5.5, 0.8, 0.8)
 
 MODELS = ("ar1", "ar1_fixed", "ar2", "ar2_fixed", "random_walk")
+#: The models whose state carries a size velocity ``(w', h')`` (``size_velocity_decay``
+#: acts on these; the others keep it at 0).
+SIZE_VELOCITY_MODELS = ("ar1", "ar2")
 
 #: Generators of the motion noise: "jax" (``jax.random``, threefry) or "hash"
 #: (``kernels.fastrand``: one threefry call for two seeds, then a counter hash;

@@ -51,7 +51,7 @@ import numpy as np
 
 from cpf_jax import charts
 from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params, track_boxes
-from cpf_jax.dynamics import THESIS_TAU
+from cpf_jax.dynamics import SIZE_VELOCITY_MODELS, THESIS_TAU
 from cpf_jax.metrics import run_success_curve, summarise
 from cpf_jax.synthetic import make_sequence
 from cpf_jax.types import Frame
@@ -456,13 +456,13 @@ def main(argv=None) -> dict:
         if model == base.model:
             res["table_3_4"][label] = res["table_3_1"]["100"]
             continue
-        p = undamped if model in ("ar1", "ar2") else params
+        p = undamped if model in SIZE_VELOCITY_MODELS else params
         mean, _ = mean_over(WALKING, seeds, keys, dataclasses.replace(n100, model=model), p)
         res["table_3_4"][label] = mean
         print(f"model {label}: {mean:.1f} %", flush=True)
         save()
     decay = float(params.size_velocity_decay)
-    for model in ("ar1", "ar2"):
+    for model in SIZE_VELOCITY_MODELS:
         label = f"8-tuple {model.upper()}, size velocity damped ({decay:g})"
         res["table_3_4"][label] = mean_over(
             WALKING, seeds, keys, dataclasses.replace(n100, model=model), params
