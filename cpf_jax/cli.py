@@ -270,7 +270,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--bins", default=None, help="hue x saturation [x value] bins: 8x8x8 (default) or 8x8"
     )
-    p.add_argument("--template-update", action="store_true", help="slowly adapt the template")
+    p.add_argument(
+        "--template-update",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="--model rgb: slowly adapt the reference histograms (default on)",
+    )
     p.add_argument(
         "--contrast",
         choices=("linear", "mixture"),
@@ -282,12 +287,12 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("background", "neutral"),
         default=None,
         help="--model rgb, linear contrast: colours seen neither in the first box nor "
-        "around it count as background (default) or neutral",
+        "around it count as background or neutral (default)",
     )
     p.add_argument(
         "--layout",
         default=None,
-        help="--model rgb: layout term on a RxC grid, e.g. 12x3 (default off)",
+        help="--model rgb: layout term on a RxC grid (default 12x3), or off",
     )
     p.add_argument(
         "--layout-feature",
@@ -444,14 +449,19 @@ def _model_options(args: argparse.Namespace) -> tuple[dict, dict]:
         colour_kw["layout_feature"] = args.layout_feature
     if args.layout_mirror:
         colour_kw["layout_mirror"] = True
+    if args.template_update is not None:
+        colour_kw["template_update"] = args.template_update
     layout_opts = args.layout_feature or args.layout_mirror or args.layout_weight is not None
-    if layout_opts and colour_kw.get("layout") is None:
-        raise UsageError("--layout-feature, --layout-mirror and --layout-weight need --layout RxC")
+    if layout_opts and "layout" in colour_kw and colour_kw["layout"] is None:
+        raise UsageError(
+            "--layout-feature, --layout-mirror and --layout-weight need a layout, not --layout off"
+        )
     if args.layout_weight is not None and not args.layout_weight >= 0:
         raise UsageError(f"--layout-weight must be >= 0, got {args.layout_weight}")
     if (colour_kw or args.layout_weight is not None) and args.model != "rgb":
         raise UsageError(
-            f"--contrast, --unseen and --layout* apply to --model rgb, not {args.model!r}"
+            f"--contrast, --unseen, --template-update and --layout* apply to --model rgb, "
+            f"not {args.model!r}"
         )
     if args.no_body_term and args.model == "rgb":
         raise UsageError("--no-body-term applies to the RGB-D models (--model rgbd|grid|...)")
@@ -559,7 +569,6 @@ def _track(args: argparse.Namespace, source, options: tuple[dict, dict]) -> int:
             hierarchical=not args.no_hierarchical,
             estimator=args.estimator,
             resampler=args.resampler,
-            template_update=args.template_update,
             **config_kw,
             **colour_kw,
         ).with_window((float(box[2]), float(box[3])), frame_hw)

@@ -21,12 +21,15 @@ Tables:
   estimate's velocity guides (``cpf_jax.dynamics``).
 * ``per_scenario_n100`` and ``min_success_n100``: every walking scenario at N = 100.
 * ``sigma_sweep``: likelihood width sigma at N = 100 (why sigma = 1 is too flat).
-* ``likelihood_ablation``: the thesis's likelihood (one H-S histogram, no
-  contrast term) vs ours at N = 100.
-* ``likelihood_terms``: the optional terms (``ColourConfig.contrast = "mixture"``,
-  ``ColourConfig.layout`` with ``layout_feature`` luminance or gradient) against
-  the default at N = 100: walking mean and minimum, the two look-alike scenes
-  (``dark_clothes``, ``distractor_pass``), and Crossing success rate / AUC.
+* ``likelihood_ablation``: from the thesis's likelihood (one H-S histogram, no
+  contrast term) to ours at N = 100, a term at a time.
+* ``likelihood_terms``: the default against the histogram-only model
+  (``ColourConfig.histogram_only``: no layout term, no template update, unseen
+  colours as background; the default until 2026-11-27), against the default
+  without each of those three, and against the alternatives (layout weight 20,
+  the gradient layout, the mixture contrast) at N = 100: walking mean and
+  minimum, the two look-alike scenes (``dark_clothes``, ``distractor_pass``),
+  and Crossing success rate / AUC.
 * ``extra_scenarios``: the distractor, light-switch and dark-clothes scenes at N = 100.
 * ``crossing``: real OTB Crossing (../shared/data/otb/Crossing), if present.
 
@@ -69,9 +72,12 @@ WALKING = (
     "turn",
 )
 EXTRA = ("distractor_pass", "light_switch", "dark_clothes")
-# Scenes where the clothes' colours are the background's: the optional likelihood
-# terms are scored on them too.
+# Scenes where the clothes' colours are the background's: the likelihood terms'
+# variants are scored on them too.
 LOOKALIKE = ("dark_clothes", "distractor_pass")
+#: The ``likelihood_terms`` row without the default's layout term, template update and
+#: neutral unseen colours (``ColourConfig.histogram_only``; the default until 2026-11-27).
+HISTOGRAM_ONLY = "histogram only (no layout, no template update, unseen background)"
 SPEEDS = {"slow": "walk_across_slow", "medium": "walk_across_medium", "fast": "walk_across_fast"}
 # Table 3.4's rows: the thesis's original model and its three variants, plus the random walk.
 MODELS = {
@@ -164,32 +170,25 @@ def crossing(n_particles: int, keys: int, config: ColourConfig, params) -> dict 
 
 
 def likelihood_term_variants(base: ColourConfig, params) -> dict:
-    """``likelihood_terms`` rows: label -> (config, params); the first is the default."""
+    """``likelihood_terms`` rows: label -> (config, params); the first is the default.
+
+    The default's three real-video terms (layout 12x3, template update, unseen colours
+    neutral) taken away together and one at a time, then the alternatives.
+    """
     return {
         "default": (base, params),
-        **{
-            f"layout 12x3 (layout_weight {w})": (
-                dataclasses.replace(base, layout=(12, 3)),
-                params._replace(layout_weight=jnp.float32(w)),
-            )
-            for w in (10, 20)
-        },
-        **{
-            f"gradient layout 12x3 (layout_weight {w})": (
-                dataclasses.replace(base, layout=(12, 3), layout_feature="gradient"),
-                params._replace(layout_weight=jnp.float32(w)),
-            )
-            for w in (10, 20)
-        },
-        # What beats CSRT on Crossing (README, "Crossing"): the layout, the slow
-        # template update and unseen colours neutral in the contrast weights.
-        "layout 12x3 + template update + unseen neutral": (
-            dataclasses.replace(base, layout=(12, 3), template_update=True, unseen="neutral"),
+        HISTOGRAM_ONLY: (base.histogram_only(), params),
+        "no layout": (dataclasses.replace(base, layout=None), params),
+        "no template update": (dataclasses.replace(base, template_update=False), params),
+        "unseen background": (dataclasses.replace(base, unseen="background"), params),
+        "layout_weight 20": (base, params._replace(layout_weight=jnp.float32(20.0))),
+        "gradient layout 12x3": (dataclasses.replace(base, layout_feature="gradient"), params),
+        "mixture contrast, histogram only": (
+            dataclasses.replace(base.histogram_only(), contrast="mixture"),
             params,
         ),
-        "mixture contrast": (dataclasses.replace(base, contrast="mixture"), params),
-        "mixture + layout 12x3 (contrast_weight 5, layout_weight 20)": (
-            dataclasses.replace(base, contrast="mixture", layout=(12, 3)),
+        "mixture + layout 12x3 (contrast_weight 5, layout_weight 20, no update)": (
+            dataclasses.replace(base, contrast="mixture", template_update=False),
             params._replace(contrast_weight=jnp.float32(5.0), layout_weight=jnp.float32(20.0)),
         ),
     }
@@ -329,7 +328,7 @@ def markdown(res: dict) -> str:
     table("Other scenarios, N = 100", res.get("extra_scenarios"))
     if res.get("likelihood_terms"):
         lines += [
-            "## Optional likelihood terms, N = 100",
+            "## Likelihood terms, N = 100 (the default and variants)",
             "",
             "| variant | walking mean | walking min | dark_clothes | distractor_pass |"
             " Crossing SR | Crossing AUC |",
@@ -495,8 +494,11 @@ def main(argv=None) -> dict:
     print(f"sigma sweep: {res['sigma_sweep']}", flush=True)
     save()
 
+    # From the thesis's likelihood to ours, one term at a time (histogram-only rows
+    # first, then the default's layout, template update and neutral unseen colours).
+    hist100 = n100.histogram_only()
     thesis_cfg = dataclasses.replace(
-        n100, parts=1, ring_margin=0.0, model="ar1", hierarchical=False
+        hist100, parts=1, ring_margin=0.0, model="ar1", hierarchical=False
     )
     thesis_p = undamped._replace(
         contrast_weight=jnp.float32(0.0),
@@ -511,18 +513,22 @@ def main(argv=None) -> dict:
             WALKING,
             seeds,
             keys,
-            dataclasses.replace(n100, parts=1, ring_margin=0.0),
+            dataclasses.replace(hist100, parts=1, ring_margin=0.0),
             params._replace(contrast_weight=jnp.float32(0.0)),
         )[0],
         "2 parts, no contrast": mean_over(
             WALKING,
             seeds,
             keys,
-            dataclasses.replace(n100, ring_margin=0.0),
+            dataclasses.replace(hist100, ring_margin=0.0),
             params._replace(contrast_weight=jnp.float32(0.0)),
         )[0],
-        "ours (default)": res["table_3_1"]["100"],
     }
+    hist_mean, hist_per = mean_over(WALKING, seeds, keys, hist100, params)
+    res["likelihood_ablation"]["2 parts + contrast (histogram only)"] = hist_mean
+    res["likelihood_ablation"]["ours (default: + layout, template update, unseen neutral)"] = res[
+        "table_3_1"
+    ]["100"]
     print(f"ablation: {res['likelihood_ablation']}", flush=True)
     save()
 
@@ -540,7 +546,12 @@ def main(argv=None) -> dict:
             per, cross = per100, res["crossing"]
             look = {n: res["extra_scenarios"][n] for n in LOOKALIKE}
         else:
-            per = mean_over(WALKING, seeds, keys, cfg100, p)[1]
+            # The histogram-only walking runs are the ablation's (same config and seeds).
+            per = (
+                hist_per
+                if label == HISTOGRAM_ONLY
+                else mean_over(WALKING, seeds, keys, cfg100, p)[1]
+            )
             cross = crossing(100, crossing_keys, cfg, p)
             look = mean_over(LOOKALIKE, seeds, keys, cfg100, p)[1]
         res["likelihood_terms"][label] = {

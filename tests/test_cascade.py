@@ -163,7 +163,8 @@ def test_rgb_variant_box_is_the_colour_layer(walk):
         state, ci = step(
             cparams, jax.random.split(k)[0], state, Frame(frames.colour[t + 1], frames.depth[t + 1])
         )
-        np.testing.assert_allclose(info.box.estimate[t], ci.estimate, atol=1e-4)
+        # Equal up to float32 rounding (two programs compiled apart).
+        np.testing.assert_allclose(info.box.estimate[t], ci.estimate, rtol=2e-6, atol=1e-4)
     assert info.points.mean.shape == (n - 1, len(JOINTS), 2)
     assert np.isfinite(info.points.mean).all()
 

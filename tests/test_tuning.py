@@ -1,6 +1,8 @@
 """Gradient tuning (cpf_jax.tuning): bijectors, the DIoU loss against NumPy under jit and
 vmap, gradients through the filters against finite differences, and the optax loop."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,13 +17,15 @@ from cpf_jax.synthetic import make_sequence
 
 @pytest.fixture(scope="module")
 def walk():
-    """Two short synthetic walks (14 frames) and a colour config with one window for both."""
+    """Two short synthetic walks (14 frames) and a colour config with one window for both:
+    the histogram-only model (``ColourConfig.histogram_only``), whose sigma and contrast
+    weight carry the likelihood (the default's layout term is checked on its own)."""
     seqs = [make_sequence("walk_across_medium", seed=s, n_frames=14) for s in (100, 101)]
     data = tuning.stack_sequences(seqs)
     w = max(float(s.boxes[:, 2].max()) for s in seqs)
     h = max(float(s.boxes[:, 3].max()) for s in seqs)
     config = ColourConfig(n_particles=40).with_window((w, h), seqs[0].colour.shape[1:3])
-    return data, config
+    return data, config.histogram_only()
 
 
 @pytest.mark.parametrize("kind", ["identity", "softplus", "sigmoid"])
@@ -116,14 +120,23 @@ def test_diou_loss_matches_numpy_under_jit_and_vmap():
     assert float(tuning.diou_loss(jnp.zeros((0, 4)), jnp.zeros((0, 4)), jnp.zeros(0))) == 0.0
 
 
-def test_colour_gradient_matches_finite_differences(walk):
+@pytest.mark.parametrize(
+    "model, names",
+    [("histogram_only", ("sigma", "contrast_weight")), ("default", ("layout_weight",))],
+)
+def test_colour_gradient_matches_finite_differences(walk, model, names):
     """One filter step (the estimate is a smooth weighted mean of fixed particles): the
-    gradient of the loss with respect to sigma and contrast_weight is the numerical one."""
+    gradient of the loss with respect to sigma and contrast_weight (histogram-only
+    model) and to the default's layout weight is the numerical one."""
     data, config = walk
+    if model == "default":
+        config = dataclasses.replace(
+            config, layout=ColourConfig().layout, template_update=True, unseen="neutral"
+        )
+        assert config == dataclasses.replace(ColourConfig(), n_particles=40, window=config.window)
     two = jax.tree_util.tree_map(lambda x: x[:, :2], data)
     loss = jax.jit(tuning.make_loss(tuning.colour_runner(config), PARAM_CONSTRAINTS))
     p = default_colour_params()._replace(sigma=jnp.float32(0.3))
-    names = ("sigma", "contrast_weight")
     free = tuning.to_unconstrained(p, PARAM_CONSTRAINTS, names)
     key = jax.random.PRNGKey(4)
     grads = jax.jit(jax.grad(tuning.make_loss(tuning.colour_runner(config), PARAM_CONSTRAINTS)))(
