@@ -51,7 +51,8 @@ keys = jax.random.split(jax.random.PRNGKey(0), n_keys)
 if model == "colour":
     seq = make_sequence("walk_across_medium", seed=0, n_frames=150)
     frames = Frame(jnp.asarray(seq.colour), jnp.asarray(seq.depth))
-    config = ColourConfig(n_particles=n_particles).with_window(
+    # The histogram-only model (the default until 2026-11-27; the committed timings).
+    config = ColourConfig(n_particles=n_particles).histogram_only().with_window(
         seq.boxes[0, 2:], seq.colour.shape[1:3]
     )
     filt, params = build_colour_filter(config), default_colour_params()

@@ -524,7 +524,8 @@ def main(args) -> dict:
         "opencv": cv2.__version__,
         "bins": list(ColourConfig().bins),
         "model": "library default (cpf_jax.colour): 8x8 H-S + 8 value bins, 2 parts, "
-        "centre-surround ring, contrast and aspect terms, random-walk motion",
+        "centre-surround ring, contrast and aspect terms, layout 12x3, template update, "
+        "random-walk motion",
         "frame": f"{FRAME_W}x{FRAME_H}",
         "box": f"{BOX_WH[0]}x{BOX_WH[1]}",
         "window": list(make_colour_step(1000)[2].window),

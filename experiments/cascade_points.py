@@ -60,7 +60,9 @@ def _box_config(source: str, seq) -> RGBDConfig:
     wh = tuple(float(v) for v in seq.boxes[0, 2:])
     hw = seq.colour.shape[1:3]
     if source == "rgb":
-        colour = ColourConfig(n_particles=N_BOX).with_window(wh, hw)
+        # The histogram-only colour model (the default until 2026-11-27), with which
+        # the committed table was made.
+        colour = ColourConfig(n_particles=N_BOX).histogram_only().with_window(wh, hw)
         return RGBDConfig(variant="rgb", n_particles=N_BOX, colour=colour, window=colour.window)
     return RGBDConfig(variant=source, n_particles=N_BOX).with_window(wh, hw)
 

@@ -1,9 +1,14 @@
-"""OTB Crossing's box scale: the optional colour-layer terms with unseen colours counted as
-background (the default) or as neutral (``ColourConfig.unseen``).
+"""OTB Crossing's box scale: the colour-layer terms with unseen colours counted as
+background or as neutral (``ColourConfig.unseen``).
+
+Every row starts from the histogram-only model (``ColourConfig.histogram_only()``,
+the library's default until 2026-11-27); the row labelled "default" is that model.
+This script's measurements led to today's default, the "layout+update" row with
+unseen colours neutral (``cpf_jax.colour``, "Why these defaults").
 
 On Crossing the tracked boxes are tighter than the annotation: pale pavement and
 crosswalk stripes inside the annotation's margin were seen neither in the first
-box nor in its ring, and the default linear contrast weights count such colours
+box nor in its ring, and the histogram-only model's linear contrast weights count such colours
 as background (README, "Crossing"). ``unseen = "neutral"`` gives them weight 0.
 This script scores both on Crossing (N = 100, 5 filter keys, as
 ``colour_tables.py``'s ``crossing``) for the default and the layout variants
@@ -48,7 +53,7 @@ TRAIN_KEYS = 3
 
 def variants() -> dict[str, tuple[ColourConfig, object]]:
     """Row label -> (config, params), each with unseen colours as background."""
-    base = ColourConfig(n_particles=100)
+    base = ColourConfig(n_particles=100).histogram_only()
     params = default_colour_params()
     layout = dataclasses.replace(base, layout=(12, 3))
     update = params._replace(template_rate=jnp.float32(0.05))

@@ -128,6 +128,25 @@ def test_size_velocity_decay_from_the_command_line(folder, tmp_path):
     assert jnp.isfinite(jnp.asarray(damped)).all()
 
 
+def test_histogram_only_model_from_the_command_line():
+    """The default colour model has the layout term, the template update and neutral
+    unseen colours; three options give ``ColourConfig.histogram_only()``."""
+    from cpf_jax.cli import _model_options, build_parser
+    from cpf_jax.colour import ColourConfig
+
+    default = ColourConfig()
+    assert default.layout == (12, 3) and default.template_update
+    assert default.unseen == "neutral"
+    args = build_parser().parse_args(["x"])
+    config_kw, colour_kw = _model_options(args)
+    assert ColourConfig(**config_kw, **colour_kw) == default
+    argv = ["x", "--layout", "off", "--no-template-update", "--unseen", "background"]
+    config_kw, colour_kw = _model_options(build_parser().parse_args(argv))
+    hist = ColourConfig(**config_kw, **colour_kw)
+    assert hist == default.histogram_only() and hist != default
+    assert hist.layout is None and not hist.template_update and hist.unseen == "background"
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [
