@@ -163,8 +163,9 @@ defaults" below says what changed and why.
 Why these defaults (2026-11-27): the layout term 12x3 at weight 10, the slow
 template update and neutral unseen colours together are the only setting found
 that tracks the real OTB Crossing sequence (a dark-clad walker on dark asphalt)
-as well as OpenCV's CSRT, and they keep the synthetic walking scenes. On the tables' seeds (colour_tables.py,
-``likelihood_terms``, N = 100; walking mean / worst, ``dark_clothes``,
+as well as OpenCV's CSRT, and they keep the synthetic walking scenes. On the
+tables' seeds (colour_tables.py, ``likelihood_terms``, N = 100; walking mean /
+worst, ``dark_clothes``,
 ``distractor_pass``, Crossing success rate / AUC) the histogram-only model scores
 98.7 / 97.4, 65.1, 50.2, 60.5 / 56.4 and these defaults 98.4 / 96.4, 91.9, 46.7,
 99.0 / 71.2 (CSRT 95.0 / 70.0). What it costs:
