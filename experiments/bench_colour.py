@@ -201,6 +201,8 @@ def init_particles(key, n: int, xywh) -> jax.Array:
 # The library's default colour model, and the same code configured as the thesis's
 # (one 8x8 H-S histogram per box, no contrast / ring / aspect terms: the same work
 # per particle as the OpenCV loop).
+#: ``ColourConfig.histogram_only()`` as keyword arguments.
+HISTOGRAM_ONLY = {"layout": None, "template_update": False, "unseen": "background"}
 VARIANTS = {
     "default": {},
     "thesis": {
@@ -209,13 +211,10 @@ VARIANTS = {
         "ring_margin": 0.0,
         "aspect_prior": False,
         "model": "ar1",
-        "layout": None,
-        "template_update": False,
-        "unseen": "background",
+        **HISTOGRAM_ONLY,
     },
-    # The default without its layout term and template update
-    # (ColourConfig.histogram_only): what those cost.
-    "histogram_only": {"layout": None, "template_update": False, "unseen": "background"},
+    # The default without its layout term and template update: what those cost.
+    "histogram_only": HISTOGRAM_ONLY,
     "gradient": {"layout_feature": "gradient"},
 }
 
