@@ -540,7 +540,9 @@ PARAM_CONSTRAINTS = ColourParams(
     aspect_mean="softplus",
     aspect_sigma="softplus",
     tau="softplus",
-    motion=MotionParams("sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid"),
+    motion=MotionParams(
+        "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "sigmoid"
+    ),
     template_rate="sigmoid",
     template_max_distance="sigmoid",
     lost_distance="sigmoid",
@@ -561,7 +563,8 @@ def default_colour_params() -> ColourParams:
         aspect_mean=f(0.41),
         aspect_sigma=f(0.3),
         tau=jnp.asarray(DEFAULT_TAU, jnp.float32),
-        motion=default_motion_params(),
+        # Guided particles moving across keep their size (dynamics, "Size hold").
+        motion=default_motion_params()._replace(size_hold=f(1.0)),
         template_rate=f(0.05),
         template_max_distance=f(0.3),
         lost_distance=f(0.7),

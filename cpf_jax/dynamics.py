@@ -49,6 +49,19 @@ numerically safe form:
   (1 + size_gain_x * |x'|)``: the bounded, never-dividing-by-zero form of
   ``a (x')^-1 + b (y')`` — size changes are likelier when the box moves along y
   and less likely when it moves fast along x.
+* Size hold (``size_hold`` h in [0, 1], default 0): the thesis's other half of
+  the idea, "more particles ... in the expected direction of the velocity vector
+  but fewer samples associated with the width and height changes" when the box
+  moves across the image. A guided particle's inherited size velocity
+  ``(w', h')`` is multiplied by ``1 - h (1 - min(r, 1))`` before the step, with
+  ``r`` the size-noise scale above: a box moving fast along x keeps its size
+  (and stops carrying a stale size velocity), one moving along y or standing
+  still is unaffected. Under the thesis's undamped AR1 the size velocity is a
+  random walk, and on a walk across the image the box's width and height
+  drift to 0.2-2.2 of the person's; the guided share then keeps the sizes that
+  fit. The colour filter's default is h = 1 (``cpf_jax.colour``); the RGB-D
+  filter keeps 0 (its importance weights use the proposal's closed-form
+  density, which assumes it).
 * A fraction ``1 - guided_fraction`` of the particles keeps the plain ``ar1``
   noise, so the population never loses its isotropic diversity.
 
@@ -147,11 +160,14 @@ class MotionParams(NamedTuple):
     # Correlation of the width and height noise (and of their velocities), in
     # [0, 1): a person's box mostly scales as a whole when the distance changes.
     size_correlation: Array = 0.0
+    # How much a guided particle moving along x keeps its size (module docstring,
+    # "Size hold"), in [0, 1]; 0: the size velocity is carried unchanged.
+    size_hold: Array = 0.0
 
 
 def default_motion_params() -> MotionParams:
     f = jnp.float32
-    return MotionParams(f(0.5), f(2.0), f(4.0), f(0.5), f(0.5), f(0.8))
+    return MotionParams(f(0.5), f(2.0), f(4.0), f(0.5), f(0.5), f(0.8), f(0.0))
 
 
 def _ar1(particles: Array, noise: Array) -> Array:
@@ -194,6 +210,11 @@ def guide_frame(vx: Array, vy: Array, motion: MotionParams) -> tuple[Array, Arra
     return ex, ey, stretch
 
 
+def size_scale(vx: Array, vy: Array, motion: MotionParams) -> Array:
+    """The guided proposal's size-velocity noise scale ``(1 + gy |y'|) / (1 + gx |x'|)``."""
+    return (1.0 + motion.size_gain_y * jnp.abs(vy)) / (1.0 + motion.size_gain_x * jnp.abs(vx))
+
+
 def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionParams, uniform):
     """Replace the position / size-velocity noise of guided particles (see module docstring)."""
     n = particles.shape[0]
@@ -204,9 +225,9 @@ def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionPara
     across = noise[:, 1] / stretch
     dx = along * ex - across * ey
     dy = along * ey + across * ex
-    size_scale = (1.0 + motion.size_gain_y * jnp.abs(vy)) / (1.0 + motion.size_gain_x * jnp.abs(vx))
+    r = size_scale(vx, vy, motion)
     guided = noise.at[:, 0].set(dx).at[:, 1].set(dy)
-    guided = guided.at[:, 6].multiply(size_scale).at[:, 7].multiply(size_scale)
+    guided = guided.at[:, 6].multiply(r).at[:, 7].multiply(r)
     is_guided = uniform(key, (n,)) < motion.guided_fraction
     return jnp.where(is_guided[:, None], guided, noise), is_guided
 
@@ -258,9 +279,14 @@ def propagate(
     if fixed:
         noise = noise.at[:, 4:].set(0.0)
     if hierarchical and model in ("ar1", "ar1_fixed"):
-        noise, _ = _guided_noise(k_guide, particles, noise, motion, uniform)
+        noise, is_guided = _guided_noise(k_guide, particles, noise, motion, uniform)
         if fixed:
             noise = noise.at[:, 4:].set(0.0)
+        # Size hold: guided particles moving along x damp their inherited size velocity.
+        r = size_scale(particles[:, 2], particles[:, 3], motion)
+        hold = jnp.clip(jnp.asarray(motion.size_hold, jnp.float32), 0.0, 1.0)
+        keep = jnp.where(is_guided, 1.0 - hold * (1.0 - jnp.minimum(r, 1.0)), 1.0)
+        particles = particles.at[:, 6:8].multiply(keep[:, None])
     if model in ("ar1", "ar1_fixed"):
         out = _ar1(particles, noise)
     elif model in ("ar2", "ar2_fixed"):

@@ -637,7 +637,9 @@ PARAM_CONSTRAINTS = RGBDParams(
     aspect_sigma="softplus",
     tau="softplus",
     size_velocity_decay="sigmoid",
-    motion=MotionParams("sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid"),
+    motion=MotionParams(
+        "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "sigmoid"
+    ),
     fg_depth_abs="softplus",
     fg_depth_rel="softplus",
     fg_colour="softplus",
@@ -1436,6 +1438,14 @@ def detector_log_density(
     return lp - 2.0 * jnp.log(jnp.float32(s)) - jnp.log(w * step_w) - jnp.log(h * step_h)
 
 
+def _motion(params: RGBDParams) -> MotionParams:
+    """The motion parameters this filter proposes with: ``size_hold`` is 0 whatever
+    ``params`` say, since the closed-form proposal densities below assume it
+    (``cpf_jax.dynamics``, "Size hold")."""
+    hold = jnp.asarray(params.motion.size_hold, jnp.float32)
+    return params.motion._replace(size_hold=jnp.zeros_like(hold))
+
+
 def motion_size_log_density(
     config: RGBDConfig,
     params: RGBDParams,
@@ -1707,7 +1717,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             state.particles,
             state.previous,
             zero_tau,
-            params.motion,
+            _motion(params),
             model=config.model,
             hierarchical=config.hierarchical,
             scale=scale,
@@ -1841,7 +1851,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
             state.particles,
             state.previous,
             params.tau,
-            params.motion,
+            _motion(params),
             model=config.model,
             hierarchical=config.hierarchical,
             scale=scale,

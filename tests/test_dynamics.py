@@ -215,3 +215,38 @@ def test_jit_and_vmap(model):
 def test_unknown_model_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown motion model"):
         propagate(KEY, STATE, PREV, ZERO_TAU, MP, model="ar3")
+
+
+def test_size_hold_damps_the_size_velocity_of_guided_particles_moving_across():
+    """``size_hold``: guided particles keep ``1 - h (1 - min(r, 1))`` of their size
+    velocity (r the size-noise scale); positions and the plain share are unchanged."""
+    n = 20_000
+    tau = jnp.asarray(THESIS_TAU)
+    g = 0.5
+    mp = default_motion_params()._replace(guided_fraction=jnp.float32(g))
+    # moving along x at 8 px/frame, the box growing by 2 px/frame
+    state = jnp.tile(jnp.array([[100.0, 100.0, 8.0, 0.0, 40.0, 90.0, 2.0, 2.0]]), (n, 1))
+
+    @jax.jit
+    def run(hold, state):
+        m = mp._replace(size_hold=hold)
+        return propagate(KEY, state, state, tau, m, model="ar1", hierarchical=True)
+
+    off = np.asarray(run(jnp.float32(0.0), state))
+    on = np.asarray(run(jnp.float32(1.0), state))
+    np.testing.assert_array_equal(on[:, :4], off[:, :4])  # positions untouched
+    r = 1.0 / (1.0 + 0.5 * 8.0)  # default size_gain_x 0.5, |y'| = 0
+    shift = on[:, 4:] - off[:, 4:]  # (w, h, w', h') each lose (1 - keep) * 2 px
+    held = np.abs(shift[:, 0] + (1.0 - r) * 2.0) < 1e-4
+    assert abs(held.mean() - g) < 0.02  # the guided share
+    np.testing.assert_allclose(shift[held], -(1.0 - r) * 2.0, atol=1e-4)
+    np.testing.assert_allclose(shift[~held], 0.0, atol=1e-5)
+    # traced and vmapped over the hold: the mean size velocity is linear in it
+    holds = jnp.array([0.0, 0.5, 1.0], jnp.float32)
+    vw = np.asarray(jax.vmap(run, in_axes=(0, None))(holds, state))[:, :, 6].mean(axis=1)
+    want = (1 - g) * 2.0 + g * 2.0 * (1.0 - np.asarray(holds) * (1.0 - r))
+    np.testing.assert_allclose(vw, want, atol=0.01)
+    # still, or moving along y (r >= 1): nothing to hold
+    for v in ((0.0, 0.0), (0.0, 8.0)):
+        s = state.at[:, 2].set(v[0]).at[:, 3].set(v[1])
+        np.testing.assert_allclose(np.asarray(run(jnp.float32(1.0), s)), np.asarray(run(0.0, s)))

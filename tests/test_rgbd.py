@@ -470,6 +470,12 @@ def test_scan_vmap_and_no_retracing(toy):
     _, infos = jax.jit(jax.vmap(lambda k: track(filt, params, k, short, gt[0], bg)))(keys)
     assert infos.estimate.shape == (3, 5, 4)
     assert np.isfinite(np.asarray(infos.estimate)).all()
+    # The filter proposes without the colour layer's size hold (its proposal densities
+    # assume none): a cloud moving across with a size velocity is drawn alike.
+    moving = state._replace(particles=state.particles.at[:, 2].set(8.0).at[:, 6:8].set(2.0))
+    held = params._replace(motion=params.motion._replace(size_hold=jnp.float32(1.0)))
+    a, b = (jstep(p, jax.random.PRNGKey(7), moving, frame)[0] for p in (params, held))
+    np.testing.assert_array_equal(np.asarray(a.particles), np.asarray(b.particles))
 
 
 def test_rgb_variant_is_the_colour_filter(toy):
