@@ -540,8 +540,10 @@ PARAM_CONSTRAINTS = ColourParams(
     aspect_mean="softplus",
     aspect_sigma="softplus",
     tau="softplus",
+    # size_hold: identity, clipped to [0, 1] where it is used (cpf_jax.dynamics), so
+    # the defaults on its bounds (colour 1, RGB-D 0) can be tuned from.
     motion=MotionParams(
-        "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "sigmoid"
+        "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "identity"
     ),
     template_rate="sigmoid",
     template_max_distance="sigmoid",

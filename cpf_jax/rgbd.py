@@ -637,8 +637,10 @@ PARAM_CONSTRAINTS = RGBDParams(
     aspect_sigma="softplus",
     tau="softplus",
     size_velocity_decay="sigmoid",
+    # size_hold: identity, clipped to [0, 1] where it is used (cpf_jax.dynamics), so
+    # the defaults on its bounds (colour 1, RGB-D 0) can be tuned from.
     motion=MotionParams(
-        "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "sigmoid"
+        "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "identity"
     ),
     fg_depth_abs="softplus",
     fg_depth_rel="softplus",
