@@ -234,6 +234,16 @@ does not help: 96.9 plain, 96.5 guided at N = 50. On the tables' own scenes
 (``colour_tables.py``, seeds 0-2) the walking mean / worst at N = 100 went from
 98.3 / 96.6 to 98.7 / 97.4, and at N = 50 guided and plain tie (97.6 both,
 ``table_3_5_default``): the gain is small and shows mostly at N = 100.
+Under the AR1 models the guided particles also hold their size while they move
+across the image (``MotionParams.size_hold``, 1 here; ``cpf_jax.dynamics``,
+"Size hold"): the thesis's "fewer samples associated with the width and height
+changes" for motion along x. Without it the layout term could not hold the box's
+scale against the undamped AR1's random-walking size velocity (box widths 0.1-2.8
+and heights 0.2-2.2 of the ground truth's on walk_across_fast), and motion-guided
+sampling was no better than plain at N = 50 (training scenes, seeds 100-102 x 3
+keys: 88.7 against 88.6 %); with it 94.2 (95.0 at hold 0.5, 89.6 at most for the
+other guidance parameters tried: ``size_gain_x`` 0 / 2, ``size_gain_y`` 0,
+``guided_fraction`` 0.8). The RGB-D filter proposes without it.
 With the velocity models (``"ar1"``, ``"ar2"``) the particles' size velocities
 ``(w', h')`` keep ``params.size_velocity_decay`` (0.9) of themselves each frame
 (``cpf_jax.dynamics.propagate``, "Damped size velocity"): under ``"ar1"`` a

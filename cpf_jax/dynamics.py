@@ -55,13 +55,16 @@ numerically safe form:
   moves across the image. A guided particle's inherited size velocity
   ``(w', h')`` is multiplied by ``1 - h (1 - min(r, 1))`` before the step, with
   ``r`` the size-noise scale above: a box moving fast along x keeps its size
-  (and stops carrying a stale size velocity), one moving along y or standing
-  still is unaffected. Under the thesis's undamped AR1 the size velocity is a
-  random walk, and on a walk across the image the box's width and height
-  drift to 0.2-2.2 of the person's; the guided share then keeps the sizes that
-  fit. The colour filter's default is h = 1 (``cpf_jax.colour``); the RGB-D
-  filter keeps 0 (its importance weights use the proposal's closed-form
-  density, which assumes it).
+  (and stops carrying a stale size velocity); a particle at rest or moving
+  mostly along y (``r >= 1``) is unaffected. The velocities are each particle's
+  own, noise included, so around a standing person the guided share's size
+  velocities are damped too. Under the thesis's undamped AR1 the size
+  velocity is a random walk, and on a walk across the image the box's width
+  and height drift to 0.1-2.8 and 0.2-2.2 of the person's (walk_across_fast,
+  N = 50); the guided share then keeps the sizes that fit. The colour filter's
+  default is h = 1 (``cpf_jax.colour``); the RGB-D filter keeps 0 (its
+  importance weights use the proposal's closed-form density, which assumes it).
+  ``size_hold`` is tuned unconstrained and clipped to [0, 1] here.
 * A fraction ``1 - guided_fraction`` of the particles keeps the plain ``ar1``
   noise, so the population never loses its isotropic diversity.
 

@@ -3,6 +3,8 @@ background or as neutral (``ColourConfig.unseen``).
 
 Every row starts from the histogram-only model (``ColourConfig.histogram_only()``,
 the library's default until 2026-11-27); the row labelled "default" is that model.
+Its motion-guided AR1 runs use no size hold (``MotionParams.size_hold = 0``, the
+library's proposal until 2026-11-27), as the committed table was made.
 This script's measurements led to today's default, the "layout+update" row with
 unseen colours neutral (``cpf_jax.colour``, "Why these defaults").
 
@@ -55,6 +57,8 @@ def variants() -> dict[str, tuple[ColourConfig, object]]:
     """Row label -> (config, params), each with unseen colours as background."""
     base = ColourConfig(n_particles=100).histogram_only()
     params = default_colour_params()
+    # The committed table's AR1 columns predate the size hold (cpf_jax.dynamics).
+    params = params._replace(motion=params.motion._replace(size_hold=jnp.float32(0.0)))
     layout = dataclasses.replace(base, layout=(12, 3))
     update = params._replace(template_rate=jnp.float32(0.05))
     return {

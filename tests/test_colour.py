@@ -103,8 +103,11 @@ def test_ar1_size_velocity_decay_stops_an_inherited_shrinking_drift():
     tall. Stated thresholds on the estimate's mean height over the last 5 of 40
     frames, 4 keys: with the default decay every key within 15 % of the person's;
     without it (the thesis's undamped velocity) at least two keys below 70 %
-    (measured: 49.6-51.5 px, and 16-34 px in three keys of four)."""
+    (measured: 49.6-51.5 px, and 16-34 px in three keys of four). The size hold is
+    off: it damps the guided particles' size velocities too, since a standing
+    person's particles move with noise velocities (with it, undamped: 35-52 px)."""
     frames, gt = _frames(40, speed=0.0)
+    no_hold = PARAMS._replace(motion=PARAMS.motion._replace(size_hold=jnp.float32(0.0)))
     filt = build_colour_filter(ColourConfig(n_particles=128, model="ar1"))
 
     def init_shrinking(*args):
@@ -119,7 +122,7 @@ def test_ar1_size_velocity_decay_stops_an_inherited_shrinking_drift():
     default = float(PARAMS.size_velocity_decay)
     height = {}
     for decay in (default, 1.0):
-        est = np.asarray(run(PARAMS._replace(size_velocity_decay=jnp.float32(decay))))
+        est = np.asarray(run(no_hold._replace(size_velocity_decay=jnp.float32(decay))))
         height[decay] = est[:, -5:, 3].mean(axis=1)
     assert default < 1.0
     assert (np.abs(height[default] / 50 - 1) <= 0.15).all(), height
