@@ -232,6 +232,14 @@ def build_parser() -> argparse.ArgumentParser:
         "(default 0.9; 1 is the thesis's undamped model)",
     )
     p.add_argument(
+        "--size-hold",
+        type=float,
+        default=None,
+        metavar="H",
+        help="--model rgb, motion-guided ar1: how far guided particles moving across the "
+        "image keep their size, in [0, 1] (default 1; 0: they carry their size velocity)",
+    )
+    p.add_argument(
         "--model",
         choices=("rgb", "rgbd", "grid", "grid-occlusion"),
         default="rgb",
@@ -481,12 +489,25 @@ def _model_options(args: argparse.Namespace) -> tuple[dict, dict]:
                 f"--size-velocity-decay applies to --dynamics ar1|ar2 (the models with a "
                 f"size velocity), not {dynamics!r}"
             )
+    hold = args.size_hold
+    if hold is not None:
+        if not 0.0 <= hold <= 1.0:
+            raise UsageError(f"--size-hold must be in [0, 1], got {hold}")
+        from cpf_jax.colour import ColourConfig
+
+        dynamics = config_kw.get("model", ColourConfig.model)
+        if args.model != "rgb" or dynamics != "ar1" or args.no_hierarchical:
+            raise UsageError(
+                "--size-hold applies to --model rgb with --dynamics ar1 and motion-guided "
+                "sampling (the RGB-D models propose without it)"
+            )
     return config_kw, colour_kw
 
 
 def param_options(args: argparse.Namespace, params):
     """``params`` (``ColourParams`` or ``RGBDParams``) with the command line's parameter
-    options (``--sigma``, ``--layout-weight``, ``--size-velocity-decay``) applied."""
+    options (``--sigma``, ``--layout-weight``, ``--size-velocity-decay``, ``--size-hold``)
+    applied."""
     import jax.numpy as jnp
 
     from cpf_jax.colour import ColourParams
@@ -498,6 +519,10 @@ def param_options(args: argparse.Namespace, params):
         params = params._replace(layout_weight=jnp.float32(args.layout_weight))
     if args.size_velocity_decay is not None:
         params = params._replace(size_velocity_decay=jnp.float32(args.size_velocity_decay))
+    if args.size_hold is not None:  # --model rgb only (checked in _model_options)
+        params = params._replace(
+            motion=params.motion._replace(size_hold=jnp.float32(args.size_hold))
+        )
     return params
 
 

@@ -112,6 +112,9 @@ def test_size_velocity_decay_from_the_command_line(folder, tmp_path):
     rgbd = param_options(args, default_rgbd_params(RGBDConfig()))
     assert float(rgbd.size_velocity_decay) == 0.25 and np.isclose(float(rgbd.sigma_rgb), 0.3)
     assert float(default_colour_params().size_velocity_decay) == np.float32(0.9)
+    args = build_parser().parse_args(["x", "--dynamics", "ar1", "--size-hold", "0.25"])
+    assert float(param_options(args, default_colour_params()).motion.size_hold) == 0.25
+    assert float(default_colour_params().motion.size_hold) == 1.0
 
     # And changes the track: the first step starts from zero velocities (same boxes),
     # after it the size velocities differ (kept whole vs forgotten).
@@ -171,6 +174,10 @@ def test_histogram_only_model_from_the_command_line():
         (["{folder}", "--dynamics", "ar1", "--size-velocity-decay", "1.5"], "in [0, 1]"),
         (["{folder}", "--size-velocity-decay", "0.5"], "not 'random_walk'"),
         (["{folder}", "--dynamics", "ar2_fixed", "--size-velocity-decay", "0.5"], "ar1|ar2"),
+        (["{folder}", "--dynamics", "ar1", "--size-hold", "-0.5"], "in [0, 1]"),
+        (["{folder}", "--size-hold", "0.5"], "--dynamics ar1"),
+        (["{folder}", "--dynamics", "ar1", "--no-hierarchical", "--size-hold", "0"], "guided"),
+        (["{folder}", "--model", "rgbd", "--dynamics", "ar1", "--size-hold", "0"], "RGB-D"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(folder, capsys, args, needle):
