@@ -257,10 +257,12 @@ walking mean (2026-11-27): plain sampling 95.4 -> 98.8, motion-guided 98.2 ->
 98.8 (walk_across_fast 87.4 / 93.7 -> 95.8 / 96.9); with the layout term,
 template update and ``unseen = "neutral"``, motion-guided 91.7 -> 98.6. The
 thesis's tables (``experiments/colour_tables.py``) keep its undamped models and
-report the damped ones beside them (seeds 0-2, 2026-11-27): Table 3.4's AR1 97.3
-undamped, 98.2 damped, its AR2 97.5 undamped, 98.3 damped; Table 3.5 plain /
-motion-guided 92.0 / 93.2 undamped, 97.7 / 98.0 damped, so damped the two score
-alike at N = 50.
+report the damped ones beside them (seeds 0-2, 2026-11-27, today's default model
+with the size hold): Table 3.4's AR1 98.1 undamped, 98.4 damped, its AR2 96.1
+undamped, 98.0 damped; Table 3.5 plain / motion-guided 89.0 / 95.6 undamped,
+97.6 / 97.0 damped, so damped the two score alike at N = 50 (histogram-only model
+without the hold: AR1 97.3 / 98.2, AR2 97.5 / 98.3, Table 3.5 92.0 / 93.2 and
+97.7 / 98.0).
 
 Lost target (documented recovery): when even the best particle's distance
 exceeds ``params.lost_distance``, or the estimate's height has collapsed below
