@@ -288,6 +288,7 @@ from jax import Array
 from cpf_jax.dynamics import (
     DEFAULT_TAU,
     MODELS,
+    MOTION_CONSTRAINTS,
     RNGS,
     MotionParams,
     default_motion_params,
@@ -554,11 +555,7 @@ PARAM_CONSTRAINTS = ColourParams(
     aspect_mean="softplus",
     aspect_sigma="softplus",
     tau="softplus",
-    # size_hold: identity, clipped to [0, 1] where it is used (cpf_jax.dynamics), so
-    # the defaults on its bounds (colour 1, RGB-D 0) can be tuned from.
-    motion=MotionParams(
-        "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "identity"
-    ),
+    motion=MOTION_CONSTRAINTS,
     template_rate="sigmoid",
     template_max_distance="sigmoid",
     lost_distance="sigmoid",

@@ -168,6 +168,15 @@ class MotionParams(NamedTuple):
     size_hold: Array = 0.0
 
 
+#: How each motion parameter is tuned by gradient (``cpf_jax.tuning`` bijectors), shared
+#: by the colour and RGB-D filters' ``PARAM_CONSTRAINTS``. ``size_hold``: identity,
+#: clipped to [0, 1] in ``propagate``, so the defaults on its bounds (colour 1, RGB-D 0)
+#: can be tuned from.
+MOTION_CONSTRAINTS = MotionParams(
+    "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "identity"
+)
+
+
 def default_motion_params() -> MotionParams:
     f = jnp.float32
     return MotionParams(f(0.5), f(2.0), f(4.0), f(0.5), f(0.5), f(0.8), f(0.0))
@@ -232,7 +241,7 @@ def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionPara
     guided = noise.at[:, 0].set(dx).at[:, 1].set(dy)
     guided = guided.at[:, 6].multiply(r).at[:, 7].multiply(r)
     is_guided = uniform(key, (n,)) < motion.guided_fraction
-    return jnp.where(is_guided[:, None], guided, noise), is_guided
+    return jnp.where(is_guided[:, None], guided, noise), is_guided, r
 
 
 def propagate(
@@ -282,11 +291,10 @@ def propagate(
     if fixed:
         noise = noise.at[:, 4:].set(0.0)
     if hierarchical and model in ("ar1", "ar1_fixed"):
-        noise, is_guided = _guided_noise(k_guide, particles, noise, motion, uniform)
+        noise, is_guided, r = _guided_noise(k_guide, particles, noise, motion, uniform)
         if fixed:
             noise = noise.at[:, 4:].set(0.0)
         # Size hold: guided particles moving along x damp their inherited size velocity.
-        r = size_scale(particles[:, 2], particles[:, 3], motion)
         hold = jnp.clip(jnp.asarray(motion.size_hold, jnp.float32), 0.0, 1.0)
         keep = jnp.where(is_guided, 1.0 - hold * (1.0 - jnp.minimum(r, 1.0)), 1.0)
         particles = particles.at[:, 6:8].multiply(keep[:, None])
@@ -301,7 +309,7 @@ def propagate(
             # estimated velocity, its position noise stretched along it.
             v = jnp.broadcast_to(jnp.asarray(guide, jnp.float32), (particles.shape[0], 2))
             moving = particles.at[:, 2:4].set(v)
-            guided, is_guided = _guided_noise(k_guide, moving, noise, motion, uniform)
+            guided, is_guided, _ = _guided_noise(k_guide, moving, noise, motion, uniform)
             drift = jnp.where(is_guided[:, None], v, 0.0)
             step = step.at[:, :2].set(guided[:, :2] + drift)
         out = particles + step

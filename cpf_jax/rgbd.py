@@ -262,6 +262,7 @@ from cpf_jax.colour import (
 from cpf_jax.dynamics import (
     DEFAULT_TAU,
     MODELS,
+    MOTION_CONSTRAINTS,
     MotionParams,
     default_motion_params,
     guide_frame,
@@ -637,11 +638,7 @@ PARAM_CONSTRAINTS = RGBDParams(
     aspect_sigma="softplus",
     tau="softplus",
     size_velocity_decay="sigmoid",
-    # size_hold: identity, clipped to [0, 1] where it is used (cpf_jax.dynamics), so
-    # the defaults on its bounds (colour 1, RGB-D 0) can be tuned from.
-    motion=MotionParams(
-        "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "identity"
-    ),
+    motion=MOTION_CONSTRAINTS,
     fg_depth_abs="softplus",
     fg_depth_rel="softplus",
     fg_colour="softplus",
