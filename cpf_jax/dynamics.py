@@ -99,6 +99,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from .kernels import fastrand
@@ -146,9 +147,11 @@ def _draws(rng: str):
 
 
 # thesis eq. 3.26, applied to (x, y, x', y') and to (w, h, w', h')
-_A2 = jnp.array(
+# (a NumPy constant: importing the library must not start a JAX backend, so that
+# XLA_FLAGS and cpu_tuning.tune_malloc set after the import still take effect)
+_A2 = np.array(
     [[0.5, 0.0, 0.5, 0.0], [0.0, 0.5, 0.0, 0.5], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]],
-    jnp.float32,
+    np.float32,
 )
 
 

@@ -105,3 +105,25 @@ def test_library_fusions_flag_is_accepted_and_removes_ynn_fusions():
     value, ynn = _run(code).split()
     assert float(value) == 72.0
     assert int(ynn) == 0
+
+
+def test_importing_the_library_starts_no_jax_backend():
+    # cpu_tuning's switches (XLA_FLAGS, tune_malloc) only apply if JAX has not created
+    # its CPU client yet; importing cpf_jax (any module) must not create it. A module-level
+    # jnp constant did, so bench_colour's XLA flag was silently ignored.
+    code = (
+        "import importlib, os, pkgutil\n"
+        "import cpf_jax, cpf_jax.io, cpf_jax.kernels\n"
+        "for pkg in (cpf_jax, cpf_jax.io, cpf_jax.kernels):\n"
+        "    for m in pkgutil.iter_modules(pkg.__path__):\n"
+        "        importlib.import_module(pkg.__name__ + '.' + m.name)\n"
+        "os.environ['XLA_FLAGS'] = '--xla_force_host_platform_device_count=3 '"
+        " + cpf_jax.cpu_tuning.xla_cpu_flags(library_fusions=False)\n"
+        "import jax, jax.numpy as jnp\n"
+        "f = jax.jit(lambda c, q: jnp.sum(jnp.sqrt(c) * q, axis=-1))\n"
+        "text = f.lower(jnp.ones((4096, 2, 72)), jnp.ones((2, 72))).compile().as_text()\n"
+        "print(len(jax.devices('cpu')), text.count('__ynn_fusion'))\n"
+    )
+    devices, ynn = _run(code).split()
+    assert int(devices) == 3
+    assert int(ynn) == 0
