@@ -487,6 +487,44 @@ def test_suggest_window():
     assert H.suggest_window((150, 200), 15, frame, n_std=6) == (320, 256)
 
 
+@pytest.mark.parametrize("n", [1, 7, 8, 9, 16, 53, 289])
+def test_blocked_cumsum_matches_numpy(n):
+    # _cumsum cuts the axis into blocks of PREFIX_BLOCK (padded when it does not divide
+    # n): every length, either axis, exact for integers (uint16 wraps modulo 2^16, as
+    # the uint16 tables rely on), under jit and vmap.
+    rng = np.random.default_rng(n)
+    x = rng.integers(0, 60_000, (n, 5, 3)).astype(np.uint16)
+    f = jax.jit(H._cumsum, static_argnums=1)
+    for axis in (0, 1):
+        expected = np.cumsum(x, axis=axis, dtype=np.uint16)
+        np.testing.assert_array_equal(np.asarray(f(x, axis)), expected)
+    ints = rng.integers(-1000, 1000, (3, n, 4)).astype(np.int32)
+    batched = jax.vmap(lambda v: H._cumsum(v, 0))(ints)
+    np.testing.assert_array_equal(np.asarray(batched), np.cumsum(ints, axis=1))
+    floats = rng.random((n, 4)).astype(np.float32)
+    np.testing.assert_allclose(np.asarray(f(floats, 0)), np.cumsum(floats, 0), rtol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (7, 5), (37, 53), (96, 128)])
+def test_blocked_tables_equal_the_row_column_loops(shape):
+    # The default (blocked x pass, row loop along y) against the reference loops
+    # ("loop"), bit for bit, for histograms and integer images, under jit and vmap.
+    rng = np.random.default_rng(sum(shape))
+    bins = rng.integers(-1, 9, (2, *shape)).astype(np.int32)
+    blocked = jax.jit(jax.vmap(lambda b: H.integral_histogram(b, 9)))(bins)
+    loop = jax.vmap(lambda b: H.integral_histogram(b, 9, method="loop"))(bins)
+    np.testing.assert_array_equal(np.asarray(blocked), np.asarray(loop))
+    one_hot = (bins[0][..., None] == np.arange(9)).astype(np.int64)
+    ref = np.zeros((shape[0] + 1, shape[1] + 1, 9), np.int64)
+    ref[1:, 1:] = one_hot.cumsum(0).cumsum(1)
+    np.testing.assert_array_equal(np.asarray(blocked[0]).astype(np.int64), ref)
+    values = rng.integers(-4096, 4097, (*shape, 2)).astype(np.int32)
+    np.testing.assert_array_equal(
+        np.asarray(jax.jit(H.integral_image)(values)),
+        np.asarray(H.integral_image(values, method="loop")),
+    )
+
+
 def test_integral_image_and_rect_sums_match_numpy():
     rng = np.random.default_rng(3)
     values = rng.integers(-4096, 4097, (37, 53, 2)).astype(np.int32)
