@@ -23,17 +23,22 @@
 ``xla_cpu_flags(...)``
     Builds an ``XLA_FLAGS`` string for the CPU backend (single-threaded Eigen
     kernels; no YNNPACK library fusions); it only returns the string. Set it in
-    the environment before importing JAX yourself if you want it: the library
-    never changes it.
+    the environment yourself, before the first JAX computation, if you want it:
+    the library never changes it. Importing ``cpf_jax`` does not start JAX's
+    backend, so setting it after the import works (tested); once JAX has run
+    anything, XLA has read its flags.
 
     ``library_fusions=False`` stops XLA:CPU (jax 0.10) from handing elementwise
     chains and reductions to YNNPACK (``__ynn_fusion`` in the compiled HLO). In
     the colour step, the per-chunk ``sqrt(counts) . sqrt(q)`` reduction ran as
     such a fusion without XLA's outer-dimension split across the cores.
     Measured on the 2-core AMD EPYC host (``experiments/bench_colour.py``,
-    same session, median of 40 steps): N = 1k 7.0 -> 6.6 ms, N = 10k 8.9 ->
-    8.6 ms, N = 100k 25.8 -> 23.7 ms. Other programs may gain or lose: time
-    yours.
+    2026-11-27T22:01, medians of 50 steps, the second in a fresh process): N =
+    1k 9.0 -> 6.3 ms, N = 10k 12.4 -> 9.6 ms, N = 100k 46.3 -> 37.6 ms; in
+    separate processes timed back to back, N = 10k about 1 ms faster. Until
+    that day the benchmark set the flag after importing ``cpf_jax``, which had
+    already started JAX, so XLA never saw it. Other programs may gain or
+    lose: time yours.
 """
 
 from __future__ import annotations
@@ -109,7 +114,7 @@ def xla_cpu_flags(
     XLA's CPU intra-op pool otherwise uses every core. ``library_fusions=False``
     enables no YNNPACK fusion type (``--xla_cpu_experimental_ynn_fusion_type=``;
     see the module docstring). ``extra`` is appended as is. Set the result as
-    ``os.environ["XLA_FLAGS"]`` before importing JAX.
+    ``os.environ["XLA_FLAGS"]`` before the first JAX computation.
     """
     flags = []
     if single_threaded:
