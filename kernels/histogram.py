@@ -287,6 +287,15 @@ def _integral(values: Array) -> Array:
     return lax.fori_loop(0, table.shape[0] - 1, along_y, table)
 
 
+#: Ways to build an integral table (``integral_histogram`` / ``integral_image``).
+TABLE_METHODS = ("blocked", "loop")
+
+
+def _check_method(method: str) -> None:
+    if method not in TABLE_METHODS:
+        raise ValueError(f"method must be one of {TABLE_METHODS}, got {method!r}")
+
+
 def integral_histogram(
     bins: Array, n_bins: int, dtype=jnp.uint16, method: str = "blocked"
 ) -> Array:
@@ -298,6 +307,7 @@ def integral_histogram(
     for larger regions. ``method``: ``"blocked"`` (default, ``_integral``) or
     ``"loop"`` (the row and column loops of ``_prefix_sums_yx``); equal bit for bit.
     """
+    _check_method(method)
     if method != "loop":
         bins = _materialise(bins)
     one_hot = (bins[..., None] == jnp.arange(n_bins, dtype=bins.dtype)).astype(dtype)
@@ -311,6 +321,7 @@ def integral_image(values: Array, method: str = "blocked") -> Array:
     ``[0, x) x [0, y)``), in the dtype of ``values``. Integer values give exact sums
     (int32: while the frame's total magnitude stays below 2^31). ``method`` as in
     ``integral_histogram`` (float sums round differently)."""
+    _check_method(method)
     if method == "loop":
         return _prefix_sums_yx(jnp.pad(values, ((1, 0), (1, 0), (0, 0))))
     return _integral(_materialise(values))

@@ -98,7 +98,7 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path, monkeypat
     assert np.isfinite(read_results(out)["boxes"]).all()
 
 
-def test_size_velocity_decay_from_the_command_line(folder, tmp_path):
+def test_size_velocity_decay_and_size_hold_from_the_command_line(folder, tmp_path):
     import jax.numpy as jnp
 
     from cpf_jax.cli import build_parser, param_options

@@ -523,6 +523,8 @@ def test_blocked_tables_equal_the_row_column_loops(shape):
         np.asarray(jax.jit(H.integral_image)(values)),
         np.asarray(H.integral_image(values, method="loop")),
     )
+    with pytest.raises(ValueError, match="method"):
+        H.integral_histogram(bins[0], 9, method="scan")
 
 
 def test_integral_image_and_rect_sums_match_numpy():
