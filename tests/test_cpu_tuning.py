@@ -88,6 +88,16 @@ def test_xla_cpu_flags_only_returns_a_string(monkeypatch):
     assert "XLA_FLAGS" not in os.environ
 
 
+#: Compiles a sqrt-multiply-reduce (the colour step's per-chunk reduction) and binds
+#: ``ynn`` to the number of YNNPACK fusions in it.
+_YNN_PROBE = (
+    "import jax, jax.numpy as jnp\n"
+    "f = jax.jit(lambda c, q: jnp.sum(jnp.sqrt(c) * q, axis=-1))\n"
+    "c = jnp.ones((4096, 2, 72)); q = jnp.ones((2, 72))\n"
+    "ynn = f.lower(c, q).compile().as_text().count('__ynn_fusion')\n"
+)
+
+
 def test_library_fusions_flag_is_accepted_and_removes_ynn_fusions():
     # This jaxlib must know the flag (XLA aborts on an unknown flag or value), and the
     # compiled program of a sqrt-multiply-reduce (the colour step's per-chunk
@@ -95,12 +105,11 @@ def test_library_fusions_flag_is_accepted_and_removes_ynn_fusions():
     flags = cpu_tuning.xla_cpu_flags(library_fusions=False)
     assert flags == cpu_tuning.YNN_OFF_FLAG
     code = (
-        "import os; os.environ['XLA_FLAGS'] = " + repr(flags) + "\n"
-        "import jax, jax.numpy as jnp\n"
-        "f = jax.jit(lambda c, q: jnp.sum(jnp.sqrt(c) * q, axis=-1))\n"
-        "c = jnp.ones((4096, 2, 72)); q = jnp.ones((2, 72))\n"
-        "text = f.lower(c, q).compile().as_text()\n"
-        "print(float(f(c, q)[0, 0]), text.count('__ynn_fusion'))\n"
+        "import os; os.environ['XLA_FLAGS'] = "
+        + repr(flags)
+        + "\n"
+        + _YNN_PROBE
+        + "print(float(f(c, q)[0, 0]), ynn)\n"
     )
     value, ynn = _run(code).split()
     assert float(value) == 72.0
@@ -119,10 +128,8 @@ def test_importing_the_library_starts_no_jax_backend():
         "        importlib.import_module(pkg.__name__ + '.' + m.name)\n"
         "os.environ['XLA_FLAGS'] = '--xla_force_host_platform_device_count=3 '"
         " + cpf_jax.cpu_tuning.xla_cpu_flags(library_fusions=False)\n"
-        "import jax, jax.numpy as jnp\n"
-        "f = jax.jit(lambda c, q: jnp.sum(jnp.sqrt(c) * q, axis=-1))\n"
-        "text = f.lower(jnp.ones((4096, 2, 72)), jnp.ones((2, 72))).compile().as_text()\n"
-        "print(len(jax.devices('cpu')), text.count('__ynn_fusion'))\n"
+        + _YNN_PROBE
+        + "print(len(jax.devices('cpu')), ynn)\n"
     )
     devices, ynn = _run(code).split()
     assert int(devices) == 3
