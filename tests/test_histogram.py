@@ -487,6 +487,32 @@ def test_suggest_window():
     assert H.suggest_window((150, 200), 15, frame, n_std=6) == (320, 256)
 
 
+@pytest.mark.parametrize("n", [3, 8, 16, 21, 40])
+def test_chunked_blocks_with_carried_inputs_equal_one_pass(n):
+    """``_chunked`` gives ``fn`` over all rows at once, cutting args along different axes
+    into blocks of 8 (one block, exact blocks, a partial last block), with the blocks'
+    inputs sliced in place or carried through the loop, under ``jit`` and ``vmap``."""
+    rng = np.random.default_rng(n)
+    a = jnp.asarray(rng.integers(0, 100, (3, n)), jnp.int32)  # rows along axis 1
+    b = jnp.asarray(rng.normal(size=(n, 2)), jnp.float32)  # rows along axis 0
+
+    def fn(a, b):
+        # a broadcast product, the pattern that carried inputs are for
+        return (a[:, None, :] * (a[1:] - a[:-1])[None, :, :]).reshape(-1, a.shape[-1]).T, b * 2
+
+    want = fn(a, b)
+    for carry in (False, True):
+        blocks = functools.partial(H._chunked, fn, chunk=8, axis=(1, 0), carry_inputs=carry)
+        got = jax.jit(lambda a, b, blocks=blocks: blocks((a, b)))(a, b)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+        batched = jax.vmap(lambda a, b, blocks=blocks: blocks((a, b)), in_axes=(None, 0))(
+            a, jnp.stack([b, -b])
+        )
+        np.testing.assert_array_equal(np.asarray(batched[0][1]), np.asarray(want[0]))
+        np.testing.assert_array_equal(np.asarray(batched[1][1]), -np.asarray(want[1]))
+
+
 @pytest.mark.parametrize("n", [1, 7, 8, 9, 16, 53, 289])
 def test_blocked_cumsum_matches_numpy(n):
     # _cumsum cuts the axis into blocks of PREFIX_BLOCK (padded when it does not divide
