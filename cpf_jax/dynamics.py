@@ -134,14 +134,21 @@ SIZE_VELOCITY_MODELS = ("ar1", "ar2")
 RNGS = ("jax", "hash")
 
 
+def _pick(x: Array, columns: tuple[int, ...] | None) -> Array:
+    return x if columns is None else x[..., list(columns)]
+
+
 def _draws(rng: str):
-    """``(normal, uniform)`` samplers ``f(key, shape)`` of an ``RNGS`` name."""
+    """``(normal, uniform)`` samplers of an ``RNGS`` name: ``normal(key, shape, columns=None)``
+    (``columns``: only those indices of the last axis, the numbers of the full draw) and
+    ``uniform(key, shape)``."""
     if rng == "jax":
         return (
-            lambda k, shape: jax.random.normal(k, shape, jnp.float32),
+            lambda k, shape, columns=None: _pick(jax.random.normal(k, shape, jnp.float32), columns),
             lambda k, shape: jax.random.uniform(k, shape),
         )
     if rng == "hash":
+        # Counter-based: the columns cost only themselves.
         return fastrand.normal, fastrand.uniform
     raise ValueError(f"unknown rng {rng!r}; expected one of {RNGS}")
 
@@ -278,7 +285,15 @@ def propagate(
     normal, uniform = _draws(rng)
     k_noise, k_guide = jax.random.split(key)
     tau = jnp.asarray(tau, jnp.float32)
-    z = normal(k_noise, particles.shape)
+    if model == "random_walk":
+        # Only positions and sizes move (the velocity columns are zeroed below): their
+        # normals are the full draw's, the others are not drawn.
+        n = particles.shape[0]
+        zs = normal(k_noise, particles.shape, (0, 1, 4, 5))
+        zero = jnp.zeros((n,), jnp.float32)
+        z = jnp.stack([zs[:, 0], zs[:, 1], zero, zero, zs[:, 2], zs[:, 3], zero, zero], axis=1)
+    else:
+        z = normal(k_noise, particles.shape)
     # Correlated size noise: width noise = rho * (height's normal) + sqrt(1 - rho^2) * own,
     # scaled by the box's aspect so that w and h change in proportion.
     rho = jnp.clip(jnp.asarray(motion.size_correlation, jnp.float32), 0.0, 0.999)

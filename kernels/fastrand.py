@@ -43,14 +43,26 @@ def _pcg(x: Array) -> Array:
     return (word >> 22) ^ word
 
 
-def bits(key: Array, shape: tuple[int, ...]) -> Array:
-    """``uint32`` random words of ``shape`` from a JAX PRNG ``key`` (typed or raw)."""
+def bits(key: Array, shape: tuple[int, ...], columns: tuple[int, ...] | None = None) -> Array:
+    """``uint32`` random words of ``shape`` from a JAX PRNG ``key`` (typed or raw).
+
+    ``columns`` (static, optional): only these indices of the last axis, shape
+    ``shape[:-1] + (len(columns),)``. The words are those of the full draw
+    (``bits(key, shape)[..., columns]``: the same counters), at the cost of the
+    columns drawn.
+    """
     shape = tuple(int(s) for s in shape)
     size = math.prod(shape)
     if size > 2**32:
         raise ValueError(f"fastrand draws at most 2**32 numbers at once, asked for {size}")
     seeds = jax.random.bits(key, (2,), jnp.uint32)
-    counter = lax.iota(jnp.uint32, size).reshape(shape)
+    if columns is None:
+        counter = lax.iota(jnp.uint32, size).reshape(shape)
+    else:
+        if not shape or not all(0 <= c < shape[-1] for c in columns):
+            raise ValueError(f"columns {columns} must index the last axis of shape {shape}")
+        rows = lax.iota(jnp.uint32, size // shape[-1]).reshape(shape[:-1] + (1,))
+        counter = rows * jnp.uint32(shape[-1]) + jnp.asarray(columns, jnp.uint32)
     return _pcg(_pcg(counter ^ seeds[0]) + seeds[1])
 
 
@@ -67,8 +79,10 @@ def uniform(key: Array, shape: tuple[int, ...], minval: float = 0.0, maxval: flo
     return minval + (maxval - minval) * u
 
 
-def normal(key: Array, shape: tuple[int, ...]) -> Array:
+def normal(key: Array, shape: tuple[int, ...], columns: tuple[int, ...] | None = None) -> Array:
     """Float32 standard normals ``sqrt(2) erfinv(v)`` of ``v = (2k + 1) / 2**23 - 1``, exact
-    and inside ``(-1, 1)`` (the transform ``jax.random.normal`` uses; ``|z| < 5.4``)."""
-    v = _odd_fraction(bits(key, shape)) * jnp.float32(2.0**-23) - jnp.float32(1.0)
+    and inside ``(-1, 1)`` (the transform ``jax.random.normal`` uses; ``|z| < 5.4``).
+    ``columns``: only these indices of the last axis, as in ``bits`` (the ``erf_inv`` is
+    most of the cost)."""
+    v = _odd_fraction(bits(key, shape, columns)) * jnp.float32(2.0**-23) - jnp.float32(1.0)
     return jnp.float32(math.sqrt(2.0)) * lax.erf_inv(v)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from cpf_jax.dynamics import MODELS, RNGS, THESIS_TAU, default_motion_params, propagate
+from cpf_jax.kernels import fastrand
 
 ZERO_TAU = jnp.zeros(8)
 STATE = jnp.array([[100.0, 80.0, 3.0, -2.0, 40.0, 90.0, 0.5, 1.0]])
@@ -91,6 +92,26 @@ def test_random_walk_has_no_velocity():
     assert np.all(out[:, [2, 3, 6, 7]] == 0)
     np.testing.assert_allclose(out[:, 0].mean(), 100.0, atol=1.5)  # no drift from x'
     np.testing.assert_allclose(out[:, 0].std(), 10.0, rtol=0.1)
+
+
+@pytest.mark.parametrize("rng", RNGS)
+def test_random_walk_moves_by_the_full_draws_position_and_size_normals(rng):
+    """The random walk draws only the normals it uses (positions and sizes): they are
+    the ones of the full ``[N, 8]`` draw, so every step is the same as drawing all."""
+    n = 300
+    independent = MP._replace(size_correlation=jnp.float32(0.0))
+    state = jnp.tile(STATE, (n, 1))
+    tau = jnp.asarray(THESIS_TAU)
+    out = np.asarray(propagate(KEY, state, state, tau, independent, model="random_walk", rng=rng))
+    k_noise, _ = jax.random.split(KEY)
+    if rng == "hash":
+        z = fastrand.normal(k_noise, (n, 8))
+    else:
+        z = jax.random.normal(k_noise, (n, 8), jnp.float32)
+    want = np.asarray(state + z * tau)
+    cols = [0, 1, 4, 5]
+    np.testing.assert_array_equal(out[:, cols], want[:, cols])
+    assert np.all(out[:, [2, 3, 6, 7]] == 0)
 
 
 @pytest.mark.parametrize("rng", RNGS)

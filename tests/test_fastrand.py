@@ -93,3 +93,22 @@ def test_no_serial_or_cross_stream_correlation():
 def test_too_many_numbers_is_a_clear_error():
     with pytest.raises(ValueError, match="2\\*\\*32"):
         jax.eval_shape(lambda k: fr.bits(k, (1 << 17, 1 << 16)), jax.random.key(0))
+
+
+@pytest.mark.parametrize(
+    "shape,columns", [((50, 8), (0, 1, 4, 5)), ((3, 4, 6), (5, 2)), ((7, 1), (0,))]
+)
+def test_columns_are_those_of_the_full_draw(shape, columns):
+    """``columns`` draws the full draw's numbers at those last-axis indices, under jit
+    and vmap too; an index outside the last axis is a clear error."""
+    key = jax.random.key(4)
+    full_bits = np.asarray(fr.bits(key, shape))
+    np.testing.assert_array_equal(np.asarray(fr.bits(key, shape, columns)), full_bits[..., columns])
+    full = np.asarray(fr.normal(key, shape))
+    some = jax.jit(fr.normal, static_argnums=(1, 2))(key, shape, columns)
+    np.testing.assert_array_equal(np.asarray(some), full[..., columns])
+    keys = jax.random.split(key, 2)
+    mapped = np.asarray(jax.vmap(lambda k: fr.normal(k, shape, columns))(keys))
+    np.testing.assert_array_equal(mapped[1], np.asarray(fr.normal(keys[1], shape))[..., columns])
+    with pytest.raises(ValueError, match="columns"):
+        fr.bits(key, shape, (shape[-1],))
