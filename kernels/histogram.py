@@ -419,7 +419,10 @@ def grid_ncc(
     block's corners fit in cache; ``None``: one block, e.g. on a GPU). Each
     block's edges arrive as loop-carried buffers (``_chunked(carry_inputs=True)``):
     sliced in place, the cell areas' broadcast product ran as scalar code, 3.7 of
-    the 13 ms at N = 100,000 (1.0 ms carried).
+    the 13 ms at N = 100,000 (1.0 ms carried). The ``optimization_barrier`` calls
+    below no longer stop XLA:CPU's fusion (jax 0.10 drops them first): the corners
+    are a buffer as the gather's output, the cell means are recomputed by the three
+    fusions that read them.
     """
     height, width = table.shape[0] - 1, table.shape[1] - 1
     c = table.shape[-1]
@@ -582,9 +585,11 @@ def _corner_index(rects: Array, stride: int) -> Array:
     """
     x0, y0, x1, y1 = (rects[..., i] for i in range(4))
     idx = jnp.stack([y1 * stride + x1, y0 * stride + x1, y1 * stride + x0, y0 * stride + x0])
-    # Materialise the indices: otherwise XLA fuses the whole index arithmetic
-    # (rounding, clipping, window shift) into the gather and recomputes it for
-    # each of the n_bins outputs of every rect (5-10x slower at N = 100k).
+    # Materialise the indices: fused, the whole index arithmetic (rounding, clipping,
+    # window shift) ran in the gather, once for each of the n_bins outputs of every
+    # rect (5-10x slower at N = 100k). The barrier is a no-op for XLA:CPU's fusion
+    # since jax 0.10 (dropped before fusion); the rows are materialised anyway as an
+    # operand of the chunk loop (``_chunked``).
     return lax.optimization_barrier(idx)
 
 
@@ -596,9 +601,11 @@ def _corner_counts(table_flat: Array, idx: Array) -> Array:
         return table_flat.at[idx[k]].get(mode="promise_in_bounds")
 
     # Modular arithmetic in the table's dtype: exact when the true count fits.
-    # Materialise the integer counts before the float conversion: fused into
-    # the caller's reduction (sqrt, dot), the gathers and the conversion run
-    # element by element (N = 100k colour step: 34 -> 22 ms on 2 CPU cores).
+    # The barrier once kept the integer counts out of the caller's reduction, where
+    # the gathers and the conversion ran element by element (N = 100k colour step:
+    # 34 -> 22 ms). XLA:CPU in jax 0.10 drops it before fusion: the gathers,
+    # conversion, sqrt and product now form one fusion, vectorised along the bins,
+    # and the sum over bins is a separate pass (the product is materialised).
     counts = lax.optimization_barrier(row(0) - row(1) - row(2) + row(3))
     return counts.astype(jnp.float32)
 
