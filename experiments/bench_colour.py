@@ -66,6 +66,13 @@ def _parse_args(argv=None):
         "and without the XLA flags",
     )
     p.add_argument(
+        "--fresh-repeats",
+        type=int,
+        default=3,
+        help="re-time the main JAX step (same settings) in this many more fresh processes, "
+        "one after another: the host's speed varies between processes (default 3)",
+    )
+    p.add_argument(
         "--out", default=None, help="results path stem (default experiments/results/bench_colour)"
     )
     p.add_argument(
@@ -138,6 +145,7 @@ N_TABLE = (20, 40, 60, 80, 100, 120, 1_000, 10_000)
 TABLE_BOXES = ((100, 150), (150, 150), (150, 200), (150, 250))
 BASELINE_MAX_N = 10_000
 WARMUP = 20  # untimed steps before timing
+ROUNDS = 5  # the main settings' timed steps are spread over this many interleaved rounds
 
 
 # ----------------------------------------------------------------------------- scene
@@ -300,6 +308,52 @@ def time_jax_step(n: int, box_wh, frame, repeats: int, variant: str = "default")
     }
 
 
+def time_jax_steps_interleaved(specs, frame, repeats: int, rounds: int = ROUNDS) -> list[dict]:
+    """``time_jax_step`` for every ``(n, box_wh, variant)`` in ``specs``, interleaved.
+
+    Each setting is compiled and warmed up first; then ``rounds`` rounds time
+    ``repeats // rounds`` steps of every setting in turn (each continuing its own
+    particle cloud). This host's speed drifts over minutes (±20-40 %): timed one
+    after another, a slow spell fell on one setting alone; interleaved, it falls on all.
+    """
+    frame_j = _frame(frame)
+    per = max(1, repeats // rounds)
+    runs = []
+    for n, box_wh, variant in specs:
+        x, y = FRAME_W / 2 - box_wh[0] / 2, FRAME_H / 2 - box_wh[1] / 2
+        xywh = jnp.asarray((x, y, float(box_wh[0]), float(box_wh[1])), jnp.float32)
+        step, init, _ = make_colour_step(n, box_wh, variant=variant)
+        key = jax.random.key(0)
+        state = init(key, frame_j, xywh)
+        for i in range(WARMUP):
+            state, _ = step(jax.random.fold_in(key, i), state, frame_j)
+        jax.block_until_ready(state)
+        runs.append({"step": step, "state": state, "key": key, "times": [], "windowed": 0})
+    for r in range(rounds):
+        for run in runs:
+            state, step = run["state"], run["step"]
+            for j in range(per):
+                k = jax.random.fold_in(run["key"], 1000 + r * per + j)
+                t0 = time.perf_counter()
+                state, info = step(k, state, frame_j)
+                jax.block_until_ready((state, info))
+                run["times"].append(time.perf_counter() - t0)
+                run["windowed"] += bool(info.windowed)
+            run["state"], run["info"] = state, info
+    out = []
+    for run in runs:
+        ms = _median_ms(run["times"])
+        out.append(
+            {
+                "ms_per_frame": ms,
+                "fps": 1e3 / ms,
+                "final_ess": float(run["info"].ess),
+                "windowed": run["windowed"] / len(run["times"]),
+            }
+        )
+    return out
+
+
 def timed_steps(step, state, frame, key, repeats: int, warmup: int = WARMUP):
     """Wall times (s) of ``repeats`` jitted ``step(key, state, frame)`` calls, the share of
     them whose info says ``windowed``, and the last info.
@@ -423,6 +477,25 @@ def _markdown(results: dict) -> str:
             + ", ".join(f"N={int(n):,} {v:.2f} ms" for n, v in un.items())
             + ".",
         ]
+    if meta.get("fresh_repeats_ms_per_frame"):
+        fresh = meta["fresh_repeats_ms_per_frame"]
+        k = len(next(iter(fresh.values())))
+        parts = []
+        for n, more in fresh.items():
+            runs = [results[n]["ms_per_frame"]] + more
+            parts.append(
+                f"N={int(n):,} "
+                + " / ".join(f"{v:.2f}" for v in runs)
+                + f" ms (median {float(np.median(runs)):.2f}, {1000 / float(np.median(runs)):.1f}"
+                " frames/s)"
+            )
+        lines += [
+            "",
+            f"The main run and {k} more fresh processes with the same settings, one after "
+            "another (this host's speed varies between processes and over minutes): "
+            + "; ".join(parts)
+            + ".",
+        ]
     if "fast_path_rate" in meta:
         lines += [
             "",
@@ -432,12 +505,18 @@ def _markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _untuned_main_timings(repeats: int, without: str = "malloc") -> dict | None:
+def _untuned_main_timings(repeats: int, without: str | None = "malloc") -> dict | None:
     """The main JAX timings from a fresh process without ``tune_malloc`` (``without="malloc"``)
-    or without the ``--tune-xla`` flags (``"xla"``): both are process-wide settings."""
+    or without the ``--tune-xla`` flags (``"xla"``): both are process-wide settings.
+    ``without=None``: the same settings as this process (a repeat in a fresh process)."""
     cmd = [sys.executable, __file__, "--main-only", f"--repeats={repeats}", f"--stat={ARGS.stat}"]
     env = dict(os.environ)
-    if without == "malloc":
+    if without is None:
+        if not ARGS.tune_malloc:
+            cmd.append("--no-tune-malloc")
+        if not ARGS.tune_xla:
+            cmd.append("--no-tune-xla")
+    elif without == "malloc":
         cmd.append("--no-tune-malloc")
     else:
         cmd.append("--no-tune-xla")
@@ -457,15 +536,20 @@ def main(args) -> dict:
     repeats = 10 if args.quick else args.repeats
     load_before = os.getloadavg()
     results: dict = {}
+    variants = (
+        ["default"] if args.main_only else ["default", "thesis", "histogram_only", "gradient"]
+    )
+    specs = [(n, BOX_WH, v) for n in N_MAIN for v in variants]
+    timed = dict(zip(specs, time_jax_steps_interleaved(specs, frame, repeats), strict=True))
     for n in N_MAIN:
-        r = time_jax_step(n, BOX_WH, frame, repeats)
+        r = timed[(n, BOX_WH, "default")]
         results[str(n)] = r
         if not args.main_only:
-            t = time_jax_step(n, BOX_WH, frame, repeats, variant="thesis")
+            t = timed[(n, BOX_WH, "thesis")]
             r["thesis_model_ms_per_frame"] = t["ms_per_frame"]
-            hist = time_jax_step(n, BOX_WH, frame, repeats, variant="histogram_only")
+            hist = timed[(n, BOX_WH, "histogram_only")]
             r["histogram_only_ms_per_frame"] = hist["ms_per_frame"]
-            grad = time_jax_step(n, BOX_WH, frame, repeats, variant="gradient")
+            grad = timed[(n, BOX_WH, "gradient")]
             r["gradient_layout_ms_per_frame"] = grad["ms_per_frame"]
             print(
                 f"JAX   N={n:>7,}: {r['ms_per_frame']:7.2f} ms  {r['fps']:7.1f} fps "
@@ -502,6 +586,20 @@ def main(args) -> dict:
             for n in N_MAIN:
                 ms = no_xla[str(n)]["ms_per_frame"]
                 print(f"JAX (no XLA flags) N={n:>7,}: {ms:7.2f} ms", flush=True)
+    fresh: dict[str, list[float]] = {str(n): [] for n in N_MAIN}
+    for _ in range(0 if args.quick else max(0, args.fresh_repeats)):
+        again = _untuned_main_timings(repeats, without=None)
+        for n in N_MAIN if again else ():
+            fresh[str(n)].append(again[str(n)]["ms_per_frame"])
+    if any(fresh.values()):
+        for n in N_MAIN:
+            runs = [results[str(n)]["ms_per_frame"]] + fresh[str(n)]
+            print(
+                f"JAX N={n:>7,} in {len(runs)} processes: "
+                + " / ".join(f"{v:.2f}" for v in runs)
+                + f" ms (median {float(np.median(runs)):.2f})",
+                flush=True,
+            )
     if not args.quick:
         table = {"n_particles": list(N_TABLE), "fps": {}, "ms_per_frame": {}, "windowed": {}}
         for w, h in TABLE_BOXES:
@@ -538,11 +636,13 @@ def main(args) -> dict:
         "no_xla_tuning_ms_per_frame": (
             {n: r["ms_per_frame"] for n, r in no_xla.items()} if no_xla else None
         ),
+        "fresh_repeats_ms_per_frame": fresh if any(fresh.values()) else None,
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "xla_flags_given": XLA_FLAGS_GIVEN,
         "repeats": repeats,
         "timing": f"{ARGS.stat} of repeats, jax.block_until_ready, {WARMUP} warm-up steps "
-        "excluded (the OpenCV loop timed the same way)",
+        f"excluded; the main JAX settings interleaved in {ROUNDS} rounds (the OpenCV loop "
+        "and Table 3.2 timed one setting after another)",
         "fast_path_rate": rate,
         "command": "python " + " ".join(["experiments/bench_colour.py"] + sys.argv[1:]),
     }
