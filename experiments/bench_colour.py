@@ -25,6 +25,10 @@ per particle crop + ``cv2.calcHist`` on H and S + ``cv2.compareHist``
 (``HISTCMP_BHATTACHARYYA``). It is measured up to N = 10,000 and scaled linearly
 above (its cost is per particle).
 
+The main settings (N = 1k, 10k, 100k x the four variants) are timed interleaved, in
+``ROUNDS`` rounds, and the default step is re-timed in ``--fresh-repeats`` more fresh
+processes: this 2-core host's speed drifts by 20-40 % over minutes and between processes.
+
 ``--tune-malloc`` (default on) calls ``cpf_jax.cpu_tuning.tune_malloc()`` before
 JAX allocates anything. ``--tune-xla`` (default on) adds
 ``cpf_jax.cpu_tuning.xla_cpu_flags(library_fusions=False)`` (no YNNPACK
