@@ -38,9 +38,9 @@
     separate processes timed back to back, N = 10k about 1 ms faster. In the
     run of 2026-11-28T01:20 the fresh process without the flag was the faster one
     (6.7 / 10.1 / 31.7 ms against 7.9 / 11.8 / 39.5): between processes the
-    difference is within this host's noise. Until
-    that day the benchmark set the flag after importing ``cpf_jax``, which had
-    already started JAX, so XLA never saw it. Other programs may gain or
+    difference is within this host's noise. Until 2026-11-27 the benchmark set
+    the flag after importing ``cpf_jax``, which had already started JAX, so XLA
+    never saw it. Other programs may gain or
     lose: time yours.
 """
 

@@ -306,12 +306,13 @@ def integral_histogram(
     ``"loop"`` (the row and column loops of ``_prefix_sums_yx``); equal bit for bit.
     """
     _check_method(method)
-    if method != "loop":
-        bins = _materialise(bins)
-    one_hot = (bins[..., None] == jnp.arange(n_bins, dtype=bins.dtype)).astype(dtype)
+
+    def one_hot(b: Array) -> Array:
+        return (b[..., None] == jnp.arange(n_bins, dtype=b.dtype)).astype(dtype)
+
     if method == "loop":
-        return _prefix_sums_yx(jnp.pad(one_hot, ((1, 0), (1, 0), (0, 0))))
-    return _integral(one_hot)
+        return _prefix_sums_yx(jnp.pad(one_hot(bins), ((1, 0), (1, 0), (0, 0))))
+    return _integral(one_hot(_materialise(bins)))
 
 
 def integral_image(values: Array, method: str = "blocked") -> Array:
