@@ -535,8 +535,10 @@ def test_blocked_cumsum_matches_numpy(n):
 def test_blocked_tables_equal_the_row_column_loops(shape):
     # The default (blocked x pass, row loop along y) against the reference loops
     # ("loop"), bit for bit, for histograms and integer images, under jit and vmap.
+    # Bins outside [0, 9) (-1, and 9..16: the stored table's padding channels and
+    # beyond) count nowhere.
     rng = np.random.default_rng(sum(shape))
-    bins = rng.integers(-1, 9, (2, *shape)).astype(np.int32)
+    bins = rng.integers(-1, 17, (2, *shape)).astype(np.int32)
     blocked = jax.jit(jax.vmap(lambda b: H.integral_histogram(b, 9)))(bins)
     loop = jax.vmap(lambda b: H.integral_histogram(b, 9, method="loop"))(bins)
     np.testing.assert_array_equal(np.asarray(blocked), np.asarray(loop))
@@ -551,6 +553,23 @@ def test_blocked_tables_equal_the_row_column_loops(shape):
     )
     with pytest.raises(ValueError, match="method"):
         H.integral_histogram(bins[0], 9, method="scan")
+
+
+def test_stored_table_rows_are_padded_with_empty_channels():
+    # The corner gathers read a table whose channel rows are padded to whole
+    # vectors (TABLE_ROW_ALIGN bytes); the padding never counts a pixel.
+    assert H._table_channels(72, jnp.uint16) == 80
+    assert H._table_channels(64, jnp.uint16) == 64
+    assert H._table_channels(72, jnp.int32) == 72
+    assert H._table_channels(9, jnp.int32) == 16
+    bins = np.random.default_rng(5).integers(-1, 20, (23, 31)).astype(np.int32)
+    for method in H.TABLE_METHODS:
+        table = np.asarray(jax.jit(H._histogram_table, static_argnums=(1, 2, 3))(
+            bins, 9, jnp.uint16, method
+        ))
+        assert table.shape == (24, 32, 16)
+        assert not table[..., 9:].any()
+        np.testing.assert_array_equal(table[..., :9], np.asarray(H.integral_histogram(bins, 9)))
 
 
 def test_integral_image_and_rect_sums_match_numpy():
