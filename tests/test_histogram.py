@@ -564,9 +564,9 @@ def test_stored_table_rows_are_padded_with_empty_channels():
     assert H._table_channels(9, jnp.int32) == 16
     bins = np.random.default_rng(5).integers(-1, 20, (23, 31)).astype(np.int32)
     for method in H.TABLE_METHODS:
-        table = np.asarray(jax.jit(H._histogram_table, static_argnums=(1, 2, 3))(
-            bins, 9, jnp.uint16, method
-        ))
+        table = np.asarray(
+            jax.jit(H._histogram_table, static_argnums=(1, 2, 3))(bins, 9, jnp.uint16, method)
+        )
         assert table.shape == (24, 32, 16)
         assert not table[..., 9:].any()
         np.testing.assert_array_equal(table[..., :9], np.asarray(H.integral_histogram(bins, 9)))
