@@ -304,6 +304,8 @@ def integral_histogram(
     corners stay exact for rects of fewer than 65,536 pixels); use ``int32``
     for larger regions. ``method``: ``"blocked"`` (default, ``_integral``) or
     ``"loop"`` (the row and column loops of ``_prefix_sums_yx``); equal bit for bit.
+    The counting paths read the table with its channels padded (``_histogram_table``,
+    ``TABLE_ROW_ALIGN``); this returns its first ``n_bins`` channels.
     """
     table = _histogram_table(bins, n_bins, dtype, method)
     return table if table.shape[-1] == n_bins else table[..., :n_bins]
@@ -313,7 +315,9 @@ def integral_histogram(
 #: multiple of this many bytes (``_table_channels``). The row loop's copies and adds
 #: run on whole vectors only then: XLA:CPU compiled a ``[1, 289, 72]`` uint16 row as
 #: scalar code, a ``[1, 289, 80]`` one vectorised. Measured on the reference 2-core
-#: CPU (2026-11-28), the 352 x 288 window's table with 72 bins: 4.4 -> 2.6 ms.
+#: CPU (2026-11-28), the 352 x 288 window's table with 72 bins: 4.4 -> 2.6 ms, the colour
+#: step 1.4 / 1.6 ms faster at N = 1,000 / 10,000 (bit-identical; interleaved A/B). The
+#: gathers read rows 11 % further apart; at N = 100,000 one A/B gave 34.4 against 37.1 ms.
 TABLE_ROW_ALIGN = 32
 
 
