@@ -170,8 +170,8 @@ worst, ``dark_clothes``,
 98.7 / 97.4, 65.1, 50.2, 60.5 / 56.4 and these defaults 98.4 / 96.4, 91.9, 46.7,
 99.0 / 71.2 (CSRT 95.0 / 70.0). What it costs:
 
-* the step: 8.3 against 6.7 ms at N = 10,000 and 29.8 against 18.9 ms at N =
-  100,000 (experiments/bench_colour.py, 2026-11-28T04:30, settings interleaved;
+* the step: 9.9 against 8.4 ms at N = 10,000 and 38.5 against 24.8 ms at N =
+  100,000 (experiments/bench_colour.py, 2026-11-28T04:50, settings interleaved;
   this host's speed swings by 20-40 % between runs): the layout's 52 lattice
   corners per particle. ``histogram_only()`` is the faster model;
 * the thesis's undamped 8-tuple AR1: the layout does not hold the box's scale
