@@ -334,8 +334,9 @@ def _histogram_table(bins: Array, n_bins: int, dtype, method: str = "blocked") -
     channels = _table_channels(n_bins, dtype)
 
     def one_hot(b: Array) -> Array:
-        # Bins outside [0, n_bins) count nowhere, also not in the padding channels.
-        b = jnp.where((b >= 0) & (b < n_bins), b, -1)
+        if channels > n_bins:
+            # Bins outside [0, n_bins) count nowhere, also not in the padding channels.
+            b = jnp.where((b >= 0) & (b < n_bins), b, -1)
         return (b[..., None] == jnp.arange(channels, dtype=b.dtype)).astype(dtype)
 
     if method == "loop":
