@@ -36,13 +36,13 @@
     2026-11-27T22:01, medians of 50 steps, the second in a fresh process): N =
     1k 9.0 -> 6.3 ms, N = 10k 12.4 -> 9.6 ms, N = 100k 46.3 -> 37.6 ms; in
     separate processes timed back to back, N = 10k about 1 ms faster. In the
-    runs of 2026-11-28 the fresh process without the flag was sometimes the faster one
-    (01:20: 6.7 / 10.1 / 31.7 ms against 7.9 / 11.8 / 39.5; 04:30: 4.8 / 8.5 / 31.8
-    against 5.3 / 8.3 / 29.8; 04:50: 6.2 / 9.8 / 36.9 against 6.9 / 9.9 / 38.5):
-    between processes the difference is within this host's noise. Until 2026-11-27 the benchmark set
-    the flag after importing ``cpf_jax``, which had already started JAX, so XLA
-    never saw it. Other programs may gain or
-    lose: time yours.
+    runs of 2026-11-28 the fresh process without the flag was sometimes the
+    faster one (01:20: 6.7 / 10.1 / 31.7 ms against 7.9 / 11.8 / 39.5; 04:30:
+    4.8 / 8.5 / 31.8 against 5.3 / 8.3 / 29.8; 04:50: 6.2 / 9.8 / 36.9 against
+    6.9 / 9.9 / 38.5): between processes the difference is within this host's
+    noise. Until 2026-11-27 the benchmark set the flag after importing
+    ``cpf_jax``, which had already started JAX, so XLA never saw it. Other
+    programs may gain or lose: time yours.
 """
 
 from __future__ import annotations

@@ -295,21 +295,8 @@ def _frame(frame: np.ndarray) -> Frame:
 
 
 def time_jax_step(n: int, box_wh, frame, repeats: int, variant: str = "default") -> dict:
-    x, y = FRAME_W / 2 - box_wh[0] / 2, FRAME_H / 2 - box_wh[1] / 2
-    xywh = jnp.asarray((x, y, float(box_wh[0]), float(box_wh[1])), jnp.float32)
-    step, init, _ = make_colour_step(n, box_wh, variant=variant)
-    frame_j = _frame(frame)
-    key = jax.random.key(0)
-    times, windowed, info = timed_steps(step, init(key, frame_j, xywh), frame_j, key, repeats)
-    ms = _median_ms(times)
-    return {
-        "ms_per_frame": ms,
-        "fps": 1e3 / ms,
-        "final_ess": float(info.ess),
-        # Share of the timed steps on the windowed path (the rest ran the exact
-        # whole-frame fallback: particle boxes outgrew the window).
-        "windowed": windowed,
-    }
+    """One setting timed on its own (``time_jax_steps_interleaved`` with one round)."""
+    return time_jax_steps_interleaved([(n, box_wh, variant)], frame, repeats, rounds=1)[0]
 
 
 def time_jax_steps_interleaved(specs, frame, repeats: int, rounds: int = ROUNDS) -> list[dict]:
@@ -352,6 +339,8 @@ def time_jax_steps_interleaved(specs, frame, repeats: int, rounds: int = ROUNDS)
                 "ms_per_frame": ms,
                 "fps": 1e3 / ms,
                 "final_ess": float(run["info"].ess),
+                # Share of the timed steps on the windowed path (the rest ran the exact
+                # whole-frame fallback: particle boxes outgrew the window).
                 "windowed": run["windowed"] / len(run["times"]),
             }
         )
@@ -484,15 +473,10 @@ def _markdown(results: dict) -> str:
     if meta.get("fresh_repeats_ms_per_frame"):
         fresh = meta["fresh_repeats_ms_per_frame"]
         k = len(next(iter(fresh.values())))
-        parts = []
-        for n, more in fresh.items():
-            runs = [results[n]["ms_per_frame"]] + more
-            parts.append(
-                f"N={int(n):,} "
-                + " / ".join(f"{v:.2f}" for v in runs)
-                + f" ms (median {float(np.median(runs)):.2f}, {1000 / float(np.median(runs)):.1f}"
-                " frames/s)"
-            )
+        parts = [
+            f"N={int(n):,} " + _process_runs_text([results[n]["ms_per_frame"]] + more, fps=True)
+            for n, more in fresh.items()
+        ]
         lines += [
             "",
             f"The main run and {k} more fresh processes with the same settings, one after "
@@ -507,6 +491,13 @@ def _markdown(results: dict) -> str:
             f"{meta['fast_path_rate']}.",
         ]
     return "\n".join(lines) + "\n"
+
+
+def _process_runs_text(runs: list[float], fps: bool = False) -> str:
+    """``"a / b / c ms (median m)"`` for one N's ms/frame in several processes."""
+    median = float(np.median(runs))
+    rate = f", {1000 / median:.1f} frames/s" if fps else ""
+    return " / ".join(f"{v:.2f}" for v in runs) + f" ms (median {median:.2f}{rate})"
 
 
 def _untuned_main_timings(repeats: int, without: str | None = "malloc") -> dict | None:
@@ -598,12 +589,7 @@ def main(args) -> dict:
     if any(fresh.values()):
         for n in N_MAIN:
             runs = [results[str(n)]["ms_per_frame"]] + fresh[str(n)]
-            print(
-                f"JAX N={n:>7,} in {len(runs)} processes: "
-                + " / ".join(f"{v:.2f}" for v in runs)
-                + f" ms (median {float(np.median(runs)):.2f})",
-                flush=True,
-            )
+            print(f"JAX N={n:>7,} in {len(runs)} processes: {_process_runs_text(runs)}", flush=True)
     if not args.quick:
         table = {"n_particles": list(N_TABLE), "fps": {}, "ms_per_frame": {}, "windowed": {}}
         for w, h in TABLE_BOXES:
