@@ -43,6 +43,22 @@
     noise. Until 2026-11-27 the benchmark set the flag after importing
     ``cpf_jax``, which had already started JAX, so XLA never saw it. Other
     programs may gain or lose: time yours.
+
+    Other XLA:CPU flags did not help the colour step. On 2026-11-28 (10:00-10:18,
+    a slow spell), the N = 100k default step was timed in fresh processes taking
+    turns, each with the flag above plus one more. Figures are medians of 40 steps.
+    - Baseline, 5 processes: 41.9-60.9 ms (median 54.7).
+    - ``--xla_cpu_use_xnnpack=true``: 41.6-50.9 ms (48.2).
+    - ``--xla_cpu_enable_concurrency_optimized_scheduler=true``: 39.3-53.9 ms (48.1).
+    - Both together: 43.1-58.3 ms (50.6).
+    - ``--xla_cpu_prefer_vector_width=512``, 3 processes: 40.3-54.5 ms.
+    - ``--xla_cpu_parallel_codegen_split_count=1``, 3 processes: 44.5-48.7 ms.
+    All of these gave bit-identical particles, and every difference is within the
+    baseline's own spread of 19 ms. ``--xla_cpu_prefer_vector_width=128`` was
+    slower (48.1-65.0 ms) and changed the particles. In jax 0.10,
+    ``--xla_cpu_use_multi_output_fusion``,
+    ``--xla_cpu_enable_experimental_deallocation`` and
+    ``--xla_cpu_small_while_loop_byte_threshold`` are unknown flags and abort the process.
 """
 
 from __future__ import annotations
