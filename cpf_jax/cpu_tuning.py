@@ -46,7 +46,8 @@
 
     Other XLA:CPU flags did not help the colour step. On 2026-11-28 (10:00-10:18,
     a slow spell), the N = 100k default step was timed in fresh processes taking
-    turns, each with the flag above plus one more. Figures are medians of 40 steps.
+    turns, each with ``library_fusions=False``'s flag plus one more. Figures are medians
+    of 40 steps.
     - Baseline, 5 processes: 41.9-60.9 ms (median 54.7).
     - ``--xla_cpu_use_xnnpack=true``: 41.6-50.9 ms (48.2).
     - ``--xla_cpu_enable_concurrency_optimized_scheduler=true``: 39.3-53.9 ms (48.1).
