@@ -48,12 +48,14 @@
     a slow spell), the N = 100k default step was timed in fresh processes taking
     turns, each with ``library_fusions=False``'s flag plus one more. Figures are medians
     of 40 steps.
+
     - Baseline, 5 processes: 41.9-60.9 ms (median 54.7).
     - ``--xla_cpu_use_xnnpack=true``: 41.6-50.9 ms (48.2).
     - ``--xla_cpu_enable_concurrency_optimized_scheduler=true``: 39.3-53.9 ms (48.1).
     - Both together: 43.1-58.3 ms (50.6).
     - ``--xla_cpu_prefer_vector_width=512``, 3 processes: 40.3-54.5 ms.
     - ``--xla_cpu_parallel_codegen_split_count=1``, 3 processes: 44.5-48.7 ms.
+
     All of these gave bit-identical particles, and every difference is within the
     baseline's own spread of 19 ms. ``--xla_cpu_prefer_vector_width=128`` was
     slower (48.1-65.0 ms) and changed the particles. In jax 0.10,
