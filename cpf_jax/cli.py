@@ -300,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--layout",
         default=None,
-        help="--model rgb: layout term on a RxC grid (default 12x3), or off",
+        help="--model rgb: layout term on a RxC grid (default 7x3), or off",
     )
     p.add_argument(
         "--layout-feature",

@@ -52,7 +52,7 @@ The likelihood, in log space, is a sum of four terms:
   better).
 * a log-normal prior on the box's aspect ratio (pedestrian boxes are about
   0.41 wide per unit of height);
-* ``layout_weight`` times the normalised cross-correlation of the box's 12 x 3
+* ``layout_weight`` times the normalised cross-correlation of the box's 7 x 3
   cell-mean luminances with the initial box's (``ColourConfig.layout``, below).
 
 Terms and settings, with their measurements. ``experiments/colour_tables.py``
@@ -424,9 +424,10 @@ class ColourConfig:
     # Layout term (``layout_vectors``): the box cut into (rows, cols) cells, the
     # normalised cross-correlation of the cells' mean luminance with the initial
     # box's. Colour histograms are blind to where colours sit inside the box; this
-    # small template pins the box's vertical extent. (12, 3) is the measured choice
-    # (experiments/colour_tables.py, "likelihood_terms"); None: off.
-    layout: tuple[int, int] | None = (12, 3)
+    # small template pins the box's vertical extent. (7, 3) is the measured choice
+    # (module docstring, "Why these defaults"; experiments/colour_tables.py,
+    # "likelihood_terms", has the former default 12x3 beside it); None: off.
+    layout: tuple[int, int] | None = (7, 3)
     # Per-pixel feature of the layout cells (``layout_table``): "luminance" (cell
     # means of brightness) or "gradient" (cell sums of gradient energy in four
     # orientations, a small HOG-like shape template).

@@ -172,9 +172,10 @@ def crossing(n_particles: int, keys: int, config: ColourConfig, params) -> dict 
 def likelihood_term_variants(base: ColourConfig, params) -> dict:
     """``likelihood_terms`` rows: label -> (config, params); the first is the default.
 
-    The default's three real-video terms (layout 12x3, template update, unseen colours
+    The default's three real-video terms (layout 7x3, template update, unseen colours
     neutral) taken away together and one at a time, then the alternatives.
     """
+    grid = "x".join(map(str, base.layout))
     return {
         "default": (base, params),
         HISTOGRAM_ONLY: (base.histogram_only(), params),
@@ -182,12 +183,17 @@ def likelihood_term_variants(base: ColourConfig, params) -> dict:
         "no template update": (dataclasses.replace(base, template_update=False), params),
         "unseen background": (dataclasses.replace(base, unseen="background"), params),
         "layout_weight 20": (base, params._replace(layout_weight=jnp.float32(20.0))),
-        "gradient layout 12x3": (dataclasses.replace(base, layout_feature="gradient"), params),
+        f"gradient layout {grid}": (dataclasses.replace(base, layout_feature="gradient"), params),
+        # The default grid until 2026-11-28: finer, slower (experiments/bench_colour.py).
+        "layout 12x3 (default until 2026-11-28)": (
+            dataclasses.replace(base, layout=(12, 3)),
+            params,
+        ),
         "mixture contrast, histogram only": (
             dataclasses.replace(base.histogram_only(), contrast="mixture"),
             params,
         ),
-        "mixture + layout 12x3 (contrast_weight 5, layout_weight 20, no update)": (
+        f"mixture + layout {grid} (contrast_weight 5, layout_weight 20, no update)": (
             dataclasses.replace(base, contrast="mixture", template_update=False),
             params._replace(contrast_weight=jnp.float32(5.0), layout_weight=jnp.float32(20.0)),
         ),

@@ -138,7 +138,7 @@ def test_histogram_only_model_from_the_command_line():
     from cpf_jax.colour import ColourConfig
 
     default = ColourConfig()
-    assert default.layout == (12, 3) and default.template_update
+    assert default.layout == (7, 3) and default.template_update
     assert default.unseen == "neutral"
     args = build_parser().parse_args(["x"])
     config_kw, colour_kw = _model_options(args)
