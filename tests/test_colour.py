@@ -101,9 +101,10 @@ def test_ar1_size_velocity_decay_stops_an_inherited_shrinking_drift():
     """AR1: every particle starts with the box shrinking 1 x 2.5 px/frame (5 %/frame,
     as a cloud that collapsed on a narrowing silhouette) on a standing person 50 px
     tall. Stated thresholds on the estimate's mean height over the last 5 of 40
-    frames, 4 keys: with the default decay every key within 15 % of the person's;
-    without it (the thesis's undamped velocity) at least two keys below 70 %
-    (measured: 49.6-51.5 px, and 16-34 px in three keys of four). The size hold is
+    frames, 8 keys: with the default decay every key within 15 % of the person's;
+    without it (the thesis's undamped velocity) at least three keys off by more
+    than 15 %, as the velocity random-walks either way (measured with the default
+    layout 7x3: 50.1-53.7 px, and 18-59 px with five keys of eight outside). The size hold is
     off: it damps the guided particles' size velocities too, since a standing
     person's particles move with noise velocities (with it, undamped: 35-52 px)."""
     frames, gt = _frames(40, speed=0.0)
@@ -115,7 +116,7 @@ def test_ar1_size_velocity_decay_stops_an_inherited_shrinking_drift():
         return state._replace(particles=state.particles.at[:, 6].set(-1.0).at[:, 7].set(-2.5))
 
     shrinking = Filter(init=init_shrinking, step=filt.step)
-    keys = jax.random.split(jax.random.PRNGKey(0), 4)
+    keys = jax.random.split(jax.random.PRNGKey(0), 8)
     run = jax.jit(
         lambda p: jax.lax.map(lambda k: track(shrinking, p, k, frames, gt[0])[1].estimate, keys)
     )
@@ -126,7 +127,7 @@ def test_ar1_size_velocity_decay_stops_an_inherited_shrinking_drift():
         height[decay] = est[:, -5:, 3].mean(axis=1)
     assert default < 1.0
     assert (np.abs(height[default] / 50 - 1) <= 0.15).all(), height
-    assert (height[1.0] < 0.7 * 50).sum() >= 2, height
+    assert (np.abs(height[1.0] / 50 - 1) > 0.15).sum() >= 3, height
 
 
 def test_step_state_and_info_are_finite_and_shaped(seq):
