@@ -167,12 +167,24 @@ as well as OpenCV's CSRT, and they keep the synthetic walking scenes. On the
 tables' seeds (colour_tables.py, ``likelihood_terms``, N = 100; walking mean /
 worst, ``dark_clothes``,
 ``distractor_pass``, Crossing success rate / AUC) the histogram-only model scores
-98.7 / 97.4, 65.1, 50.2, 60.5 / 56.4 and these defaults 98.4 / 96.4, 91.9, 46.7,
-99.0 / 71.2 (CSRT 95.0 / 70.0). What it costs:
+98.7 / 97.4, 65.1, 50.2, 60.5 / 56.4 and these defaults 98.5 / 96.3, 88.9, 44.6,
+99.5 / 71.3 (CSRT 95.0 / 70.0).
+
+The layout grid 7x3 (2026-11-28; 12x3 before): 32 lattice corners per particle
+instead of 52, for the same tracking. On the tables' seeds 12x3 scores 98.4 / 96.4,
+91.9, 46.7, 99.0 / 71.2 (``likelihood_terms``, "layout 12x3"); on the training
+scenes (seeds 100-105 x 3 keys, N = 100, scratch) 7x3 and 12x3 score walking
+97.2 / 93.9 and 97.2 / 94.4, ``dark_clothes`` 37.6 and 35.0, ``distractor_pass``
+31.9 and 34.1. Other grids on the tables' seeds (scratch; walking mean / worst,
+Crossing): 6x3 98.7 / 96.9, 97.7 / 69.8; 8x3 98.5 / 95.8, 98.7 / 70.6; 4x3 98.3 /
+95.0, 99.0 / 69.5 (``dark_clothes`` 70.3); two columns lose the walking scenes
+(12x2 84.8 / 67.9, 6x2 83.5 / 64.5). In one process, interleaved, the N = 100,000
+step took 29.5 / 40.7 ms with 12x3 and 25.6 / 35.2 ms with 7x3 (two processes).
+What it costs:
 
 * the step: 9.9 against 8.4 ms at N = 10,000 and 38.5 against 24.8 ms at N =
   100,000 (experiments/bench_colour.py, 2026-11-28T04:50, settings interleaved;
-  this host's speed swings by 20-40 % between runs): the layout's 52 lattice
+  this host's speed swings by 20-40 % between runs): the layout's 32 lattice
   corners per particle. ``histogram_only()`` is the faster model;
 * the thesis's undamped 8-tuple AR1: the layout does not hold the box's scale
   against a size velocity that random-walks (box heights 0.1-2.2 of the ground
