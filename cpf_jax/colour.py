@@ -182,9 +182,9 @@ Crossing): 6x3 98.7 / 96.9, 97.7 / 69.8; 8x3 98.5 / 95.8, 98.7 / 70.6; 4x3 98.3 
 step took 29.5 / 40.7 ms with 12x3 and 25.6 / 35.2 ms with 7x3 (two processes).
 What it costs:
 
-* the step: 9.9 against 8.4 ms at N = 10,000 and 38.5 against 24.8 ms at N =
-  100,000 (experiments/bench_colour.py, 2026-11-28T04:50, settings interleaved;
-  this host's speed swings by 20-40 % between runs): the layout's 32 lattice
+* the step: 8.8 against 6.9 ms at N = 10,000 and 30.1 against 24.4 ms at N =
+  100,000 (experiments/bench_colour.py, 2026-11-28T15:20, settings interleaved;
+  12x3: 9.3 and 34.0 ms; this host's speed swings by 20-40 % between runs): the layout's 32 lattice
   corners per particle. ``histogram_only()`` is the faster model;
 * the thesis's undamped 8-tuple AR1: the layout does not hold the box's scale
   against a size velocity that random-walks (box heights 0.1-2.2 of the ground
