@@ -215,9 +215,9 @@ def init_particles(key, n: int, xywh) -> jax.Array:
 # (one 8x8 H-S histogram per box, no contrast / ring / aspect terms: the same work
 # per particle as the OpenCV loop).
 #: ``ColourConfig.histogram_only()`` as keyword arguments.
+HISTOGRAM_ONLY = {"layout": None, "template_update": False, "unseen": "background"}
 #: The default layout grid, "RxC" (``ColourConfig.layout``).
 GRID = "x".join(map(str, ColourConfig().layout))
-HISTOGRAM_ONLY = {"layout": None, "template_update": False, "unseen": "background"}
 VARIANTS = {
     "default": {},
     "thesis": {
