@@ -142,6 +142,30 @@ def test_general_path_matches_calchist_on_edge_cases(frames):
     np.testing.assert_array_equal(np.asarray(general(bins[0], EDGE_RECTS)), ref)
 
 
+def test_general_path_with_many_rects_counts_in_uint32_exactly(monkeypatch):
+    # From WIDE_COUNTS_MIN_RECTS rects on, the whole-frame path counts from a uint32
+    # table without pieces; rects above 65,535 px (the whole 76,800 px frame) included.
+    # One colour over most of the frame: the whole frame's count of its bin is over 65,535.
+    img = _frame(1)
+    img[:, 40:] = (200, 30, 40)
+    hsv, bins = _hsv(img), np.asarray(_bins(img))
+    rng = np.random.default_rng(5)
+    n = H.WIDE_COUNTS_MIN_RECTS
+    xy = rng.integers(-40, max(FW, FH), (n, 2))
+    wh = rng.integers(0, max(FW, FH) + 80, (n, 2))
+    rects = np.concatenate([xy, xy + wh], axis=1).astype(np.int32)
+    rects[: len(EDGE_RECTS)] = EDGE_RECTS
+    wide = np.asarray(jax.jit(functools.partial(H.box_histograms, n_bins=NB))(bins, rects))
+    picks = np.concatenate([np.arange(len(EDGE_RECTS)), rng.choice(n, 40, replace=False)])
+    ref = _ref_hists(hsv, rects[picks])
+    assert ref.max() >= 65536
+    np.testing.assert_array_equal(wide[picks], ref)
+    # The uint16 table with pieces, forced: the same counts for every rect.
+    monkeypatch.setattr(H, "WIDE_COUNTS_MIN_RECTS", n + 1)
+    narrow = np.asarray(jax.jit(functools.partial(H.box_histograms, n_bins=NB))(bins, rects))
+    np.testing.assert_array_equal(wide, narrow)
+
+
 @pytest.mark.parametrize("shape", [(240, 320), (424, 512), (37, 53), (1080, 1920), (70000, 3)])
 def test_pieces_tile_any_rect_under_the_uint16_limit(shape):
     ky, kx = H._split_grid(shape)
