@@ -184,9 +184,9 @@ What it costs:
 
 * the step: 8.8 against 6.9 ms at N = 10,000 and 30.1 against 24.4 ms at N =
   100,000 on a 2-core AMD EPYC host (experiments/bench_colour.py, 2026-11-28T15:36,
-  settings interleaved; 12x3: 9.3 and 34.0 ms), 15.3 against 12.2 and 57.9 against
-  48.2 ms on a 2-core Intel Xeon host that runs it half as fast (19:32; 12x3: 16.4
-  and 65.7 ms): the layout's 32 lattice corners per particle. ``histogram_only()``
+  settings interleaved; 12x3: 9.3 and 34.0 ms), 13.9 against 10.3 and 51.0 against
+  45.9 ms on a 2-core Intel Xeon host that runs it about half as fast (20:17; 12x3:
+  13.3 and 73.8 ms): the layout's 32 lattice corners per particle. ``histogram_only()``
   is the faster model;
 * the thesis's undamped 8-tuple AR1: the layout does not hold the box's scale
   against a size velocity that random-walks (box heights 0.1-2.2 of the ground

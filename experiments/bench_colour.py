@@ -460,7 +460,7 @@ def _markdown(results: dict) -> str:
         lines += [
             "",
             "(w %): only w % of that setting's timed steps ran on the histogram window; the "
-            "rest ran the exact whole-frame fallback (`ColourInfo.windowed`), several times "
+            "rest ran the exact whole-frame fallback (`ColourInfo.windowed`), which is "
             "slower. Under the AR1 model the box sizes drift with their size velocities, and at "
             "large N the cloud's extreme boxes outgrow the window sized for the initial box, "
             "or the 65,535 pixels a uint16 count holds: one such particle sends the whole "
