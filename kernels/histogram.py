@@ -162,9 +162,12 @@ DEFAULT_CHUNK = 4096
 #: with 72, on 512 x 424; 2-core Intel Xeon, 2026-11-28), the pieces 4x the corner
 #: gathers: at 100,000 rects 36 against 132 ms (64 bins), at 2 x 100,000 68 against
 #: 301 ms (72 bins); at 10,000 rects 20 against 23 ms, at 2 x 10,000 41 against 34 ms
-#: (scratch; the counts are identical). The colour filter's AR1 models take this path
-#: at large N: one particle box outgrowing the histogram window is enough.
-WIDE_COUNTS_MIN_RECTS = 32_768
+#: (scratch; the counts are identical). Near 40,000 rects they tie: the RGB-D grid
+#: filters' steps at N = 10,000 (4 cells a particle) took 170 against 189 ms (grid)
+#: and 230-238 against 221 ms (grid-occlusion) in uint32 (A/B in one process), so
+#: they stay on uint16. The colour filter's AR1 models take this path at N = 100,000:
+#: one particle box outgrowing the histogram window is enough.
+WIDE_COUNTS_MIN_RECTS = 65_536
 
 #: Up to this many rects (static), ``box_histograms`` counts each rect by a
 #: masked scatter-add over the frame (about 0.4 ms per rect on 512 x 424)
