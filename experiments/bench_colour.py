@@ -584,7 +584,7 @@ def main(args) -> dict:
         if not args.main_only:
             for variant, key in VARIANT_KEYS.items():
                 # Each variant's time and its share of steps on the windowed path (the
-                # rest ran the exact whole-frame fallback, several times slower).
+                # rest ran the exact whole-frame fallback, which is slower).
                 r[f"{key}_ms_per_frame"] = timed[(n, BOX_WH, variant)]["ms_per_frame"]
                 r[f"{key}_windowed"] = timed[(n, BOX_WH, variant)]["windowed"]
             t = timed[(n, BOX_WH, "thesis")]

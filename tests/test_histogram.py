@@ -155,11 +155,18 @@ def test_general_path_with_many_rects_counts_in_uint32_exactly(monkeypatch):
     wh = rng.integers(0, max(FW, FH) + 80, (n, 2))
     rects = np.concatenate([xy, xy + wh], axis=1).astype(np.int32)
     rects[: len(EDGE_RECTS)] = EDGE_RECTS
-    wide = np.asarray(jax.jit(functools.partial(H.box_histograms, n_bins=NB))(bins, rects))
+    count = jax.jit(functools.partial(H.box_histograms, n_bins=NB))
+    wide = np.asarray(count(bins, rects))
     picks = np.concatenate([np.arange(len(EDGE_RECTS)), rng.choice(n, 40, replace=False)])
     ref = _ref_hists(hsv, rects[picks])
     assert ref.max() >= 65536
     np.testing.assert_array_equal(wide[picks], ref)
+    # Under vmap over frames (each frame's call sees n rects: the same path).
+    other = _frame(2)
+    both = jax.jit(jax.vmap(functools.partial(H.box_histograms, n_bins=NB), in_axes=(0, None)))
+    batched = np.asarray(both(np.stack([bins, np.asarray(_bins(other))]), rects))
+    np.testing.assert_array_equal(batched[0], wide)
+    np.testing.assert_array_equal(batched[1, picks], _ref_hists(_hsv(other), rects[picks]))
     # The uint16 table with pieces, forced: the same counts for every rect.
     monkeypatch.setattr(H, "WIDE_COUNTS_MIN_RECTS", n + 1)
     narrow = np.asarray(jax.jit(functools.partial(H.box_histograms, n_bins=NB))(bins, rects))
