@@ -155,8 +155,8 @@ TABLE_BOXES = ((100, 150), (150, 150), (150, 200), (150, 250))
 BASELINE_MAX_N = 10_000
 WARMUP = 20  # untimed steps before timing
 ROUNDS = 5  # the main settings' timed steps are spread over this many interleaved rounds
-#: The variants timed beside the default and their JSON key prefixes
-#: (``<key>_ms_per_frame``, ``<key>_windowed``).
+#: The variants timed beside the default: their JSON key prefixes (``<key>_ms_per_frame``,
+#: ``<key>_windowed``); their labels are ``VARIANT_LABELS``.
 VARIANT_KEYS = {
     "thesis": "thesis_model",
     "histogram_only": "histogram_only",
@@ -230,6 +230,13 @@ def init_particles(key, n: int, xywh) -> jax.Array:
 HISTOGRAM_ONLY = {"layout": None, "template_update": False, "unseen": "background"}
 #: The default layout grid, "RxC" (``ColourConfig.layout``).
 GRID = "x".join(map(str, ColourConfig().layout))
+#: Each variant's label in the table, the printout and the figure.
+VARIANT_LABELS = {
+    "thesis": "thesis model",
+    "histogram_only": "histogram only (no layout, no update)",
+    "gradient": f"gradient layout {GRID}",
+    "layout_12x3": "layout 12x3",
+}
 VARIANTS = {
     "default": {},
     "thesis": {
@@ -435,9 +442,9 @@ def _markdown(results: dict) -> str:
         f"Command: `{meta['command']}`",
         "",
         "| N | JAX ms/frame | JAX frames/s | OpenCV loop ms/frame | speed-up | "
-        "JAX, thesis model ms | JAX, histogram only (no layout, no update) ms | "
-        f"JAX, gradient layout {GRID} ms | JAX, layout 12x3 ms |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        + " | ".join(f"JAX, {VARIANT_LABELS[v]} ms" for v in VARIANT_KEYS)
+        + " |",
+        "|---:|---:|---:|---:|---:|" + "---:|" * len(VARIANT_KEYS),
     ]
     for n in N_MAIN:
         r = results.get(str(n))
@@ -587,16 +594,12 @@ def main(args) -> dict:
                 # rest ran the exact whole-frame fallback, which is slower).
                 r[f"{key}_ms_per_frame"] = timed[(n, BOX_WH, variant)]["ms_per_frame"]
                 r[f"{key}_windowed"] = timed[(n, BOX_WH, variant)]["windowed"]
-            t = timed[(n, BOX_WH, "thesis")]
-            hist = timed[(n, BOX_WH, "histogram_only")]
-            grad = timed[(n, BOX_WH, "gradient")]
-            fine = timed[(n, BOX_WH, "layout_12x3")]
+            others = ", ".join(
+                f"{VARIANT_LABELS[v]} {r[f'{key}_ms_per_frame']:.2f} ms"
+                for v, key in VARIANT_KEYS.items()
+            )
             print(
-                f"JAX   N={n:>7,}: {r['ms_per_frame']:7.2f} ms  {r['fps']:7.1f} fps "
-                f"(thesis model {t['ms_per_frame']:.2f} ms, "
-                f"histogram only {hist['ms_per_frame']:.2f} ms, "
-                f"gradient {GRID} {grad['ms_per_frame']:.2f} ms, "
-                f"layout 12x3 {fine['ms_per_frame']:.2f} ms)",
+                f"JAX   N={n:>7,}: {r['ms_per_frame']:7.2f} ms  {r['fps']:7.1f} fps ({others})",
                 flush=True,
             )
     if args.main_only:
@@ -715,10 +718,7 @@ def figure(results: dict, path: Path) -> None:
     ns = [int(k) for k in results if k.isdigit()]
     variants = {
         "ours (default)": "ms_per_frame",
-        "thesis model": "thesis_model_ms_per_frame",
-        "histogram only (no layout, no update)": "histogram_only_ms_per_frame",
-        f"gradient layout {GRID}": "gradient_layout_ms_per_frame",
-        "layout 12x3 (default until 2026-11-28)": "layout_12x3_ms_per_frame",
+        **{VARIANT_LABELS[v]: f"{key}_ms_per_frame" for v, key in VARIANT_KEYS.items()},
         "OpenCV calcHist + compareHist loop": "baseline_ms_per_frame",
     }
     meta = results["meta"]
