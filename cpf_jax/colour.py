@@ -642,6 +642,37 @@ def box_parts(boxes_xywh: Array, parts: int) -> Array:
     return jnp.stack([x, y, w, h], axis=-1)
 
 
+def _floor_half(v: Array) -> Array:
+    # boxes.xywh_to_rect's corner rounding, floor(v + 0.5), to int32
+    return jnp.floor(v + 0.5).astype(jnp.int32)
+
+
+def _box_columns(particles: Array) -> tuple[Array, Array, Array, Array]:
+    """``(x, y, w, h)`` columns ``[N]`` of ``[N, 8]`` particle boxes: ``_to_xywh`` unstacked."""
+    cx, cy, w, h = particles[:, 0], particles[:, 1], particles[:, 4], particles[:, 5]
+    return cx - w / 2, cy - h / 2, w, h
+
+
+def _rect_columns(boxes: tuple[Array, Array, Array, Array], parts: int | None = None):
+    """``RectColumns`` of ``(x, y, w, h)`` box columns ``[N]``: ``[N]`` each, or ``[N, parts]``
+    for the stripes of ``box_parts``. The same float operations as ``box_ops.xywh_to_rect``
+    of ``box_parts`` (so the same pixels), without a ``[..., 4]`` stack (histogram
+    ``RectColumns``)."""
+    x, y, w, h = boxes
+    if parts is None:
+        return _floor_half(x), _floor_half(y), _floor_half(x + w), _floor_half(y + h)
+    k = jnp.arange(parts, dtype=jnp.float32)
+    ys = y[:, None] + h[:, None] * k / parts
+    hs = h[:, None] / parts
+    shape = ys.shape
+    return (
+        jnp.broadcast_to(_floor_half(x)[:, None], shape),
+        _floor_half(ys),
+        jnp.broadcast_to(_floor_half(x + w)[:, None], shape),
+        _floor_half(ys + hs),
+    )
+
+
 def _normalise(h: Array) -> Array:
     return h / jnp.maximum(jnp.sum(h, axis=-1, keepdims=True), 1.0)
 
@@ -1029,21 +1060,22 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             d2 = jnp.where(total > 0, jnp.clip(1.0 - bc, 0.0, 1.0), 1.0)
             return jnp.mean(d2, axis=-1)
 
-        boxes_xywh = _to_xywh(particles)
-        rects = box_ops.xywh_to_rect(box_parts(boxes_xywh, config.parts))
+        # Rects as columns (kernels.histogram.RectColumns): no [N, parts, 4] stack.
+        box_cols = _box_columns(particles)
+        rects = _rect_columns(box_cols, config.parts)
         # The contrast terms are linear in the counts: per-pixel weights summed
         # over the box (and the ring) from a two-channel summed-area table of the
         # whole frame, so the histogram window only has to hold the boxes.
         table = contrast_table(bin_idx, state.contrast)
-        sums = rect_sums(table, box_ops.xywh_to_rect(boxes_xywh)) / CONTRAST_SCALE
+        sums = rect_sums(table, _rect_columns(box_cols)) / CONTRAST_SCALE
         score = sums[:, 0]
         if config.ring_margin > 0:
             # Centre-surround: person-coloured pixels just outside the box count
             # against it, so a box smaller than the person loses.
             m = config.ring_margin
-            grow = jnp.array([-m, -m, 2 * m, 2 * m], jnp.float32)
-            grown = boxes_xywh + grow * boxes_xywh[:, jnp.array([2, 3, 2, 3])]
-            grown_sums = rect_sums(table, box_ops.xywh_to_rect(grown)) / CONTRAST_SCALE
+            x, y, w, h = box_cols
+            grown = (x + -m * w, y + -m * h, w + 2 * m * w, h + 2 * m * h)
+            grown_sums = rect_sums(table, _rect_columns(grown)) / CONTRAST_SCALE
             score = score - (grown_sums[:, 1] - sums[:, 1])
         score = score / area
         log_prior = 0.0
@@ -1054,7 +1086,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             if config.layout_mirror:
                 mirror = mirror_layout(template, config.layout, config.layout_feature)
                 template = jnp.stack([template, mirror])
-            ncc = grid_ncc(feature_table, boxes_xywh, template, *config.layout, config.chunk)
+            ncc = grid_ncc(feature_table, box_cols, template, *config.layout, config.chunk)
             if config.layout_mirror:
                 ncc = jnp.max(ncc, axis=-1)
             log_prior = params.layout_weight * ncc

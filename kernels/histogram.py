@@ -130,6 +130,8 @@ __all__ = [
     "suggest_window",
     "DEFAULT_CHUNK",
     "rect_reduce",
+    "RectColumns",
+    "rect_columns",
     "rect_histograms_fast",
     "box_histograms",
     "bhattacharyya",
@@ -374,7 +376,7 @@ def rect_sums(table: Array, rects: Array) -> Array:
     ``integral_image`` table ``[h+1, w+1, c]``; rects are clipped to the frame (an
     empty or outside rect sums to 0)."""
     height, width = table.shape[0] - 1, table.shape[1] - 1
-    r = clip_rect(jnp.asarray(rects, jnp.int32), width, height)
+    r = _clip_columns(rect_columns(rects), width, height)
     # Flat corner rows, materialised once (see _corner_index): fused, the index
     # arithmetic was redone for every channel of every corner.
     idx = _corner_index(r, width + 1)
@@ -394,7 +396,11 @@ def _lattice_edges(
     like ``boxes.xywh_to_rect`` (``floor(v + 0.5)``) and clipped to a ``height x width``
     frame. ``box_axis_last``: ``[rows + 1, ...]`` and ``[cols + 1, ...]`` instead (built
     in that layout: a transposed copy costs more than the edges)."""
-    b = jnp.asarray(boxes, jnp.float32)
+    if isinstance(boxes, (tuple, list)):  # (x, y, w, h) columns
+        x, y, w, h = (jnp.asarray(c, jnp.float32) for c in boxes)
+    else:
+        b = jnp.asarray(boxes, jnp.float32)
+        x, y, w, h = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
 
     def edges(start: Array, size: Array, n: int, limit: int) -> Array:
         f = jnp.arange(n + 1, dtype=jnp.float32) / n
@@ -404,7 +410,7 @@ def _lattice_edges(
             v = start[..., None] + size[..., None] * f
         return jnp.clip(jnp.floor(v + 0.5), 0, limit).astype(jnp.int32)
 
-    return edges(b[..., 1], b[..., 3], rows, height), edges(b[..., 0], b[..., 2], cols, width)
+    return edges(y, h, rows, height), edges(x, w, cols, width)
 
 
 def grid_sums(table: Array, boxes: Array, rows: int, cols: int) -> Array:
@@ -443,7 +449,8 @@ def grid_ncc(
     chunk: int | None = DEFAULT_CHUNK,
 ) -> Array:
     """Normalised cross-correlation ``[N]`` of each box's ``rows x cols`` cell means with
-    ``template``, for ``boxes [N, 4] (x, y, w, h)`` and an ``integral_image`` table
+    ``template``, for ``boxes [N, 4] (x, y, w, h)`` (or a tuple of those four ``[N]``
+    columns) and an ``integral_image`` table
     ``[h+1, w+1, c]``; ``[N, T]`` for ``T`` templates ``[T, rows * cols * c]`` (the cell
     means are computed once).
 
@@ -505,8 +512,41 @@ def grid_ncc(
 # ----------------------------------------------------------------------------- window placement
 
 
-def _nonempty(rects: Array) -> Array:
-    return (rects[..., 2] > rects[..., 0]) & (rects[..., 3] > rects[..., 1])
+#: Rects as four int32 arrays ``(x0, y0, x1, y1)`` of one shape ``[N, *C]``: the form the
+#: kernels work in. Callers may pass it instead of a ``[N, *C, 4]`` array (``rect_reduce``,
+#: ``rect_sums``, ``uses_window``): built from a filter's particle columns, no
+#: ``[..., 4]`` stack ever exists. On XLA:CPU stacking corners on a minor axis and taking
+#: them apart again for the corner rows were transposing copies: 7.5 ms of an N = 100,000
+#: colour step (2-core Intel Xeon, 2026-11-28).
+RectColumns = tuple[Array, Array, Array, Array]
+
+
+def rect_columns(rects) -> RectColumns:
+    """``(x0, y0, x1, y1)`` int32 arrays of ``rects``: a ``[..., 4]`` array or such a tuple."""
+    if isinstance(rects, (tuple, list)):
+        if len(rects) != 4:
+            raise ValueError(f"rect columns must be (x0, y0, x1, y1), got {len(rects)} arrays")
+        cols = tuple(jnp.asarray(c, jnp.int32) for c in rects)
+        return tuple(jnp.broadcast_to(c, jnp.broadcast_shapes(*(c.shape for c in cols))) for c in cols)
+    r = jnp.asarray(rects, jnp.int32)
+    return tuple(r[..., i] for i in range(4))
+
+
+def _clip_columns(cols: RectColumns, width: int, height: int) -> RectColumns:
+    """``boxes.clip_rect`` on columns."""
+    x0, y0, x1, y1 = cols
+    x0 = jnp.clip(x0, 0, width)
+    y0 = jnp.clip(y0, 0, height)
+    return x0, y0, jnp.clip(x1, x0, width), jnp.clip(y1, y0, height)
+
+
+def _nonempty(cols: RectColumns) -> Array:
+    x0, y0, x1, y1 = cols
+    return (x1 > x0) & (y1 > y0)
+
+
+def _flat(cols: RectColumns) -> RectColumns:
+    return tuple(c.reshape(-1) for c in cols)
 
 
 def window_origin(rects: Array, window: tuple[int, int], frame_shape: tuple[int, int]) -> Array:
@@ -518,13 +558,13 @@ def window_origin(rects: Array, window: tuple[int, int], frame_shape: tuple[int,
     """
     fh, fw = frame_shape
     wh, ww = min(window[0], fh), min(window[1], fw)
-    r = rects.reshape(-1, 4)
+    r = _flat(rect_columns(rects))
     ne = _nonempty(r)
     big = jnp.iinfo(jnp.int32).max
-    x0 = jnp.min(jnp.where(ne, r[:, 0], big))
-    y0 = jnp.min(jnp.where(ne, r[:, 1], big))
-    x1 = jnp.max(jnp.where(ne, r[:, 2], 0))
-    y1 = jnp.max(jnp.where(ne, r[:, 3], 0))
+    x0 = jnp.min(jnp.where(ne, r[0], big))
+    y0 = jnp.min(jnp.where(ne, r[1], big))
+    x1 = jnp.max(jnp.where(ne, r[2], 0))
+    y1 = jnp.max(jnp.where(ne, r[3], 0))
     any_ne = jnp.any(ne)
     # origin = lo - slack // 2 covers [lo, hi) whenever slack = size - (hi - lo) >= 0;
     # clamping into the frame keeps the cover because clipped rects lie in the frame.
@@ -576,13 +616,12 @@ def window_covers(
     ``uint16`` table, has fewer than 65,536 pixels.
     """
     wh, ww = window
-    r = rects.reshape(-1, 4)
+    r = _flat(rect_columns(rects))
+    x0, y0, x1, y1 = r
     oy, ox = origin[0], origin[1]
-    inside = (r[:, 0] >= ox) & (r[:, 1] >= oy) & (r[:, 2] <= ox + ww) & (r[:, 3] <= oy + wh)
-    ok = inside
+    ok = (x0 >= ox) & (y0 >= oy) & (x1 <= ox + ww) & (y1 <= oy + wh)
     if _check_count_dtype(count_dtype) == jnp.uint16:
-        area = (r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1])
-        ok = ok & (area < _U16_LIMIT)
+        ok = ok & ((x1 - x0) * (y1 - y0) < _U16_LIMIT)
     return jnp.all(ok | ~_nonempty(r))
 
 
@@ -620,26 +659,29 @@ def suggest_window(
 # ----------------------------------------------------------------------------- corner gathers
 
 
-def _corner_index(rects: Array, stride: int) -> Array:
-    """Flat table rows ``[4, ...] int32`` of the corners (x1,y1), (x1,y0), (x0,y1), (x0,y0).
+def _corner_index(rects, stride: int) -> tuple[Array, Array, Array, Array]:
+    """Flat table rows ``int32`` of the corners (x1,y1), (x1,y0), (x0,y1), (x0,y0) of rects
+    (``[..., 4]`` or ``RectColumns``): four arrays of the rects' shape.
 
     Corner-major: each corner's rows are one contiguous vector, so cutting them
     into chunks moves long runs (a trailing axis of 4 made every chunk copy an
-    element-by-element transpose: 12 of 72 ms of an N = 100k colour step).
+    element-by-element transpose: 12 of 72 ms of an N = 100k colour step), and
+    separate arrays, not one ``[4, ...]`` stack (the concatenation ran as scalar
+    code: 1-3 ms at N = 100k).
     """
-    x0, y0, x1, y1 = (rects[..., i] for i in range(4))
-    idx = jnp.stack([y1 * stride + x1, y0 * stride + x1, y1 * stride + x0, y0 * stride + x0])
+    x0, y0, x1, y1 = rect_columns(rects)
+    idx = (y1 * stride + x1, y0 * stride + x1, y1 * stride + x0, y0 * stride + x0)
     # Materialise the indices: fused, the whole index arithmetic (rounding, clipping,
     # window shift) ran in the gather, once for each of the n_bins outputs of every
     # rect (5-10x slower at N = 100k). The barrier is a no-op for XLA:CPU's fusion
-    # since jax 0.10 (dropped before fusion); the rows are materialised anyway as an
-    # operand of the chunk loop (``_chunked``).
+    # since jax 0.10 (dropped before fusion); the rows are materialised anyway as
+    # operands of the chunk loop (``_chunked``).
     return lax.optimization_barrier(idx)
 
 
 def _corner_counts(table_flat: Array, idx: Array, n_bins: int) -> Array:
     """Counts ``[..., n_bins] float32`` from a flat table (``[rows, channels]``, channels
-    padded, ``_histogram_table``) and corner rows ``idx [4, ...]``."""
+    padded, ``_histogram_table``) and the four corner rows ``idx`` (``_corner_index``)."""
 
     def row(k):
         # Indices are in range by construction (rects clamped to the window).
@@ -728,18 +770,20 @@ def _split_grid(shape: tuple[int, int]) -> tuple[int, int]:
     return best
 
 
-def _pieces(rects: Array, ky: int, kx: int) -> Array:
-    """``rects [..., 4]`` -> ``[..., ky * kx, 4]`` near-equal pieces tiling each rect."""
+def _pieces(rects, ky: int, kx: int) -> RectColumns:
+    """Rects (``[..., 4]`` or ``RectColumns``) -> ``RectColumns`` ``[..., ky * kx]``: near-equal
+    pieces tiling each rect (piece axis last)."""
+    x0, y0, x1, y1 = (c[..., None] for c in rect_columns(rects))
     if ky == kx == 1:
-        return rects[..., None, :]
-    x0, y0, x1, y1 = (rects[..., i : i + 1] for i in range(4))
+        return x0, y0, x1, y1
     xs = x0 + ((x1 - x0) * jnp.arange(kx + 1)) // kx
     ys = y0 + ((y1 - y0) * jnp.arange(ky + 1)) // ky
-    px0 = jnp.tile(xs[..., :-1], (1,) * (rects.ndim - 1) + (ky,))
-    px1 = jnp.tile(xs[..., 1:], (1,) * (rects.ndim - 1) + (ky,))
+    reps = (1,) * (xs.ndim - 1) + (ky,)
+    px0 = jnp.tile(xs[..., :-1], reps)
+    px1 = jnp.tile(xs[..., 1:], reps)
     py0 = jnp.repeat(ys[..., :-1], kx, axis=-1)
     py1 = jnp.repeat(ys[..., 1:], kx, axis=-1)
-    return jnp.stack([px0, py0, px1, py1], axis=-1)
+    return px0, py0, px1, py1
 
 
 def _window_counts(
@@ -759,7 +803,7 @@ def _window_counts(
 ) -> Array:
     """Exact counts ``[N, *C, n_bins] float32`` of ``rects`` ∩ window, or ``reduce_fn`` of them.
 
-    ``rects`` are clipped frame rects; ``origin = (oy, ox)`` places the static
+    ``rects`` are clipped frame rects (``RectColumns``); ``origin = (oy, ox)`` places the static
     ``shape = (h, w)`` window (inside the frame). Each rect is cut into
     ``pieces = (ky, kx)`` parts, counted separately and summed (so that a
     uint16 table stays exact for rects of 65,536 pixels or more).
@@ -774,37 +818,45 @@ def _window_counts(
     window = lax.dynamic_slice(bins, (oy, ox), (h, w))
     table = _histogram_table(window, n_bins, dtype)
     table = table.reshape(-1, table.shape[-1])
-    lo = jnp.stack([ox, oy, ox, oy])
-    hi = lo + jnp.asarray([w, h, w, h], jnp.int32)
-    # Clamping both corners into the same interval keeps x0 <= x1: empty stays empty.
-    local = jnp.clip(rects, lo, hi) - lo
-    area = ((local[..., 2] - local[..., 0]) * (local[..., 3] - local[..., 1])).astype(jnp.float32)
-    reduce_fn = reduce_fn or (lambda counts, *_: counts)
-    idx = _corner_index(_pieces(local, *pieces), w + 1)  # [4, N, *C, P]
 
-    def count(i, a):
-        counts = jnp.sum(_corner_counts(table, i, n_bins), axis=-2)
+    def to_window(cols: RectColumns) -> RectColumns:
+        # Clamping both corners into the same interval keeps x0 <= x1: empty stays empty.
+        x0, y0, x1, y1 = cols
+        return (
+            jnp.clip(x0, ox, ox + w) - ox,
+            jnp.clip(y0, oy, oy + h) - oy,
+            jnp.clip(x1, ox, ox + w) - ox,
+            jnp.clip(y1, oy, oy + h) - oy,
+        )
+
+    local = to_window(rects)
+    area = ((local[2] - local[0]) * (local[3] - local[1])).astype(jnp.float32)
+    reduce_fn = reduce_fn or (lambda counts, *_: counts)
+    idx = _corner_index(_pieces(local, *pieces), w + 1)  # 4 x [N, *C, P]
+
+    def count(i0, i1, i2, i3, a):
+        counts = jnp.sum(_corner_counts(table, (i0, i1, i2, i3), n_bins), axis=-2)
         return reduce_fn(counts, a) if with_area else reduce_fn(counts)
 
-    out = _chunked(count, (idx, area), chunk, (1, 0))
+    out = _chunked(count, (*idx, area), chunk, (0, 0, 0, 0, 0))
     if then is None:
         return out
 
     def table_counts(more: Array) -> Array:
-        more = jnp.asarray(more, jnp.int32)
-        part = jnp.clip(more, lo, hi) - lo
+        cols = _clip_columns(rect_columns(more), *bins.shape[::-1])
         counts = jnp.sum(
-            _corner_counts(table, _corner_index(_pieces(part, *pieces), w + 1), n_bins), -2
+            _corner_counts(table, _corner_index(_pieces(to_window(cols), *pieces), w + 1), n_bins),
+            -2,
         )
         if not window_check:
             return counts
         return lax.cond(
-            batch_all(window_covers(more, origin, shape, dtype)),
+            batch_all(window_covers(cols, origin, shape, dtype)),
             lambda: counts,
-            lambda: box_histograms(bins, more, n_bins),
+            lambda: box_histograms(bins, jnp.stack(cols, axis=-1), n_bins),
         )
 
-    return out, then(out, lambda more: table_counts(clip_rect(more, *bins.shape[::-1])))
+    return out, then(out, table_counts)
 
 
 def _frame_counts(
@@ -820,7 +872,7 @@ def _frame_counts(
     """Exact counts of any clipped rects from one full-frame table: uint16 with pieces
     where needed, uint32 from ``WIDE_COUNTS_MIN_RECTS`` rects on."""
     fh, fw = bins.shape
-    wide = math.prod(rects.shape[:-1]) >= WIDE_COUNTS_MIN_RECTS
+    wide = math.prod(rects[0].shape) >= WIDE_COUNTS_MIN_RECTS
     return _window_counts(
         bins,
         rects,
@@ -852,6 +904,11 @@ def rect_reduce(
 ):
     """Exact counts of ``rects [N, *C, 4]`` reduced per rect by ``reduce_fn``.
 
+    ``rects`` may also be ``RectColumns``, four int32 arrays ``(x0, y0, x1, y1)``
+    of shape ``[N, *C]`` (the same rects, no ``[..., 4]`` stack to build and take
+    apart; ``rect_sums`` and ``uses_window`` take them too, ``grid_ncc`` box columns
+    ``(x, y, w, h)``).
+
     The engine behind every path here: clips the rects, counts them with the
     windowed integral histogram (``window = (wh, ww)``, exact ``lax.cond``
     fallback to the general path unless ``fallback=False``) or the general
@@ -877,9 +934,8 @@ def rect_reduce(
     """
     fh, fw = bins.shape
     count_dtype = _check_count_dtype(count_dtype)
-    rects = jnp.asarray(rects, jnp.int32)
-    single = rects.ndim == 1
-    rects = clip_rect(rects[None] if single else rects, fw, fh)
+    single = not isinstance(rects, (tuple, list)) and jnp.ndim(rects) == 1
+    rects = _clip_columns(rect_columns(jnp.asarray(rects)[None] if single else rects), fw, fh)
 
     def general(rects):
         return _frame_counts(
@@ -952,8 +1008,8 @@ def uses_window(
     if window is None:
         return jnp.asarray(False)
     fh, fw = frame_shape
-    r = jnp.asarray(rects, jnp.int32)
-    r = clip_rect(r[None] if r.ndim == 1 else r, fw, fh)
+    single = not isinstance(rects, (tuple, list)) and jnp.ndim(rects) == 1
+    r = _clip_columns(rect_columns(jnp.asarray(rects)[None] if single else rects), fw, fh)
     shape, origin = _window_placement(r, window, origin, (fh, fw))
     return window_covers(r, origin, shape, _check_count_dtype(count_dtype))
 

@@ -10,7 +10,10 @@ import pytest
 from cpf_jax.colour import (
     CONTRAST_SCALE,
     ColourConfig,
+    _box_columns,
     _estimate,
+    _rect_columns,
+    _to_xywh,
     bin_index,
     box_parts,
     build_colour_filter,
@@ -21,7 +24,7 @@ from cpf_jax.colour import (
     track_boxes,
 )
 from cpf_jax.kernels.boxes import iou, xywh_to_rect
-from cpf_jax.kernels.histogram import box_histograms, rect_sums
+from cpf_jax.kernels.histogram import box_histograms, grid_ncc, integral_image, rect_sums
 from cpf_jax.types import Filter, Frame
 
 H, W = 120, 160
@@ -408,3 +411,27 @@ def test_estimators_match_numpy_under_jit_and_vmap(estimator):
         assert np.all(np.abs(np.asarray(many)[:, 0] - 100) < 25)
         wider = [_estimate_reference("robust", parts[i], lw[i], 0.5) for i in range(len(parts))]
         assert np.abs(np.asarray(many) - np.array(wider))[:, :2].max() > 0.5
+
+
+@pytest.mark.parametrize("parts", [None, 1, 2, 3])
+def test_rect_columns_are_the_stacked_rects_of_the_particles(parts):
+    # The step's rects come from particle columns (no [N, parts, 4] stack); they must be
+    # xywh_to_rect(box_parts(...)) exactly, corner rounding at x.5 included.
+    rng = np.random.default_rng(3)
+    n = 4000
+    p = np.zeros((n, 8), np.float32)
+    p[:, [0, 1]] = rng.uniform(-20, 200, (n, 2))
+    p[:, [4, 5]] = rng.uniform(0.5, 120, (n, 2))
+    p[: n // 4, [0, 1, 4, 5]] = np.round(p[: n // 4, [0, 1, 4, 5]] * 2) / 2  # halves
+    particles = jnp.asarray(p)
+    boxes = _to_xywh(particles)
+    want = xywh_to_rect(boxes if parts is None else box_parts(boxes, parts))
+    got = jax.jit(lambda q: jnp.stack(_rect_columns(_box_columns(q), parts), -1))(particles)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    # grid_ncc takes the (x, y, w, h) columns too.
+    table = integral_image(jnp.asarray(rng.integers(0, 255, (H, W, 1)), jnp.int32))
+    template = jnp.asarray(rng.normal(size=21), jnp.float32)
+    np.testing.assert_array_equal(
+        np.asarray(grid_ncc(table, _box_columns(particles), template, 7, 3)),
+        np.asarray(grid_ncc(table, boxes, template, 7, 3)),
+    )

@@ -61,11 +61,11 @@ def test_tune_malloc_settings_and_capped_glibc(monkeypatch):
     fake = _FakeLibc(cap=1 << 40)
     monkeypatch.setattr(cpu_tuning, "_glibc", lambda: fake)
     assert cpu_tuning.tune_malloc() is True
-    assert fake.calls == [(-3, 1 << 30), (-1, 1 << 30), (-4, 0)]
+    assert fake.calls == [(-3, 1 << 30), (-1, 1 << 30), (-4, 0), (-8, 1)]
     # An older glibc capping the threshold at 32 MiB: the cap is used instead.
     fake = _FakeLibc(cap=32 << 20)
     monkeypatch.setattr(cpu_tuning, "_glibc", lambda: fake)
-    assert cpu_tuning.tune_malloc(disable_mmap=False) is True
+    assert cpu_tuning.tune_malloc(disable_mmap=False, single_arena=False) is True
     assert fake.calls == [(-3, 1 << 30), (-3, 32 << 20), (-1, 1 << 30)]
     # A refused setting is reported as False, not raised.
     fake = _FakeLibc(cap=0)

@@ -178,7 +178,7 @@ def test_pieces_tile_any_rect_under_the_uint16_limit(shape):
     ky, kx = H._split_grid(shape)
     assert -(-shape[0] // ky) * -(-shape[1] // kx) < 65536
     rects = np.array([[0, 0, shape[1], shape[0]], [1, 3, shape[1], shape[0] - 2], [2, 5, 2, 9]])
-    pieces = np.asarray(H._pieces(jnp.asarray(rects, jnp.int32), ky, kx))
+    pieces = np.stack(H._pieces(jnp.asarray(rects, jnp.int32), ky, kx), axis=-1)
     assert pieces.shape == (3, ky * kx, 4)
     area = (pieces[..., 2] - pieces[..., 0]) * (pieces[..., 3] - pieces[..., 1])
     assert (area < 65536).all() and (area >= 0).all()
@@ -231,6 +231,48 @@ def test_rect_reduce_with_area(frames, window):
     np.testing.assert_array_equal(out[:, 1], ref)
     batched = np.asarray(jax.vmap(f, in_axes=(0, None))(np.stack(bins[:2]), rects))
     np.testing.assert_array_equal(batched[1, :, 0], _ref_hists(hsvs[1], rects).sum(-1))
+
+
+@pytest.mark.parametrize("window", [WINDOW, None], ids=["window", "general"])
+def test_rect_columns_count_like_the_stacked_rects(frames, window):
+    # RectColumns (x0, y0, x1, y1) are the same rects as the [..., 4] array: same counts
+    # through rect_reduce (cells [N, C], a `then` counter, fallback included), rect_sums
+    # and uses_window, under jit and vmap.
+    _, hsvs, bins = frames
+    _, cloud = _cloud_rects(17, n=24)
+    rects = np.concatenate([np.asarray(cloud), np.asarray(EDGE_RECTS)]).astype(np.int32)
+    cells = np.stack([rects, rects + np.array([3, 2, 5, 9], np.int32)], axis=1)  # [N, 2, 4]
+    cols = tuple(jnp.asarray(cells[..., i]) for i in range(4))
+    assert [c.shape for c in H.rect_columns(cells)] == [cells.shape[:-1]] * 4
+
+    def count(rects):
+        return H.rect_reduce(
+            bins[0],
+            rects,
+            lambda counts: counts,
+            n_bins=NB,
+            window=window,
+            chunk=8,
+            then=lambda out, counter: counter(rects_more),
+        )
+
+    rects_more = jnp.asarray(rects[:3])
+    (a, a_more), (b, b_more) = jax.jit(count)(cells), jax.jit(count)(cols)
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(a_more), np.asarray(b_more))
+    np.testing.assert_array_equal(np.asarray(b)[:, 0], _ref_hists(hsvs[0], rects))
+    np.testing.assert_array_equal(
+        np.asarray(H.uses_window((FH, FW), cells, window)),
+        np.asarray(H.uses_window((FH, FW), cols, window)),
+    )
+    table = H.integral_image(np.asarray(bins[0])[..., None].astype(np.int32))
+    np.testing.assert_array_equal(
+        np.asarray(H.rect_sums(table, cells)), np.asarray(H.rect_sums(table, cols))
+    )
+    batched = jax.vmap(lambda c: count(c)[0])(tuple(jnp.stack([c, c]) for c in cols))
+    np.testing.assert_array_equal(np.asarray(batched[1]), np.asarray(a))
+    with pytest.raises(ValueError, match="x0, y0, x1, y1"):
+        H.rect_columns(cols[:3])
 
 
 def test_general_path_single_rect(frames):
