@@ -527,7 +527,8 @@ def rect_columns(rects) -> RectColumns:
         if len(rects) != 4:
             raise ValueError(f"rect columns must be (x0, y0, x1, y1), got {len(rects)} arrays")
         cols = tuple(jnp.asarray(c, jnp.int32) for c in rects)
-        return tuple(jnp.broadcast_to(c, jnp.broadcast_shapes(*(c.shape for c in cols))) for c in cols)
+        shape = jnp.broadcast_shapes(*(c.shape for c in cols))
+        return tuple(jnp.broadcast_to(c, shape) for c in cols)
     r = jnp.asarray(rects, jnp.int32)
     return tuple(r[..., i] for i in range(4))
 
