@@ -371,10 +371,11 @@ def integral_image(values: Array, method: str = "blocked") -> Array:
     return _integral(_materialise(values))
 
 
-def rect_sums(table: Array, rects: Array) -> Array:
-    """Sums ``[..., c]`` of the values under ``rects [..., 4] (x0, y0, x1, y1)`` from an
-    ``integral_image`` table ``[h+1, w+1, c]``; rects are clipped to the frame (an
-    empty or outside rect sums to 0)."""
+def rect_sums(table: Array, rects: Array, channels: int | None = None) -> Array:
+    """Sums ``[..., c]`` of the values under ``rects [..., 4] (x0, y0, x1, y1)`` (or
+    ``RectColumns``) from an ``integral_image`` table ``[h+1, w+1, c]``; rects are clipped
+    to the frame (an empty or outside rect sums to 0). ``channels`` (static): only the
+    first ``channels`` of the table's channels are read and summed."""
     height, width = table.shape[0] - 1, table.shape[1] - 1
     r = _clip_columns(rect_columns(rects), width, height)
     # Flat corner rows, materialised once (see _corner_index): fused, the index
@@ -383,7 +384,7 @@ def rect_sums(table: Array, rects: Array) -> Array:
     flat = table.reshape(-1, table.shape[-1])
 
     def row(k):
-        return flat.at[idx[k]].get(mode="promise_in_bounds")
+        return flat.at[idx[k], :channels].get(mode="promise_in_bounds")
 
     return row(0) - row(1) - row(2) + row(3)
 

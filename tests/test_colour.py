@@ -435,3 +435,27 @@ def test_rect_columns_are_the_stacked_rects_of_the_particles(parts):
         np.asarray(grid_ncc(table, _box_columns(particles), template, 7, 3)),
         np.asarray(grid_ncc(table, boxes, template, 7, 3)),
     )
+
+
+def test_one_frame_table_holds_the_contrast_and_layout_tables(seq):
+    # The step sums the contrast values and the layout feature in one integral image
+    # (one row loop); its channels must be contrast_table's and layout_table's exactly,
+    # and rect_sums(channels=2) the first two channels' sums.
+    from cpf_jax.colour import contrast_values, layout_table, layout_values
+
+    frames, _ = seq
+    colour = frames.colour[3]
+    idx = bin_index(colour, CONFIG.bins)
+    weights = jnp.linspace(-0.7, 0.9, CONFIG.n_bins)
+    for feature in ("luminance", "gradient"):
+        merged = jax.jit(
+            lambda c, i, w: integral_image(
+                jnp.concatenate([contrast_values(i, w), layout_values(c, feature)], -1)
+            )
+        )(colour, idx, weights)
+        np.testing.assert_array_equal(merged[..., :2], contrast_table(idx, weights))
+        np.testing.assert_array_equal(merged[..., 2:], layout_table(colour, feature))
+    rects = jnp.asarray([[5, 7, 60, 90], [-10, 20, 30, 200], [100, 50, 100, 80]])
+    np.testing.assert_array_equal(
+        rect_sums(merged, rects, channels=2), rect_sums(merged, rects)[..., :2]
+    )
