@@ -449,8 +449,8 @@ def test_one_frame_table_holds_the_contrast_and_layout_tables(seq):
     weights = jnp.linspace(-0.7, 0.9, CONFIG.n_bins)
     for feature in ("luminance", "gradient"):
         merged = jax.jit(
-            lambda c, i, w: integral_image(
-                jnp.concatenate([contrast_values(i, w), layout_values(c, feature)], -1)
+            lambda c, i, w, f=feature: integral_image(
+                jnp.concatenate([contrast_values(i, w), layout_values(c, f)], -1)
             )
         )(colour, idx, weights)
         np.testing.assert_array_equal(merged[..., :2], contrast_table(idx, weights))
