@@ -1075,12 +1075,11 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         # Rects as columns (kernels.histogram.RectColumns): no [N, parts, 4] stack.
         box_cols = _box_columns(particles)
         rects = _rect_columns(box_cols, config.parts)
-        # The contrast terms are linear in the counts: per-pixel weights summed
-        # over the box (and the ring) from a two-channel summed-area table of the
-        # whole frame, so the histogram window only has to hold the boxes.
-        # One summed-area table of the whole frame for the contrast terms (channels 0, 1)
-        # and the layout feature (the rest): one row loop instead of two (exact integer
-        # sums, the same as contrast_table and layout_table).
+        # The contrast terms are linear in the counts: per-pixel weights summed over the
+        # box (and the ring) from a summed-area table of the whole frame, so the
+        # histogram window only has to hold the boxes. The same table holds the layout
+        # feature (channels 2...): one row loop instead of two (exact integer sums, the
+        # same as contrast_table and layout_table).
         planes = [contrast_values(bin_idx, state.contrast)]
         if config.layout is not None:
             planes.append(layout_values(frame.colour, config.layout_feature))

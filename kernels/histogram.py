@@ -517,8 +517,8 @@ def grid_ncc(
 #: kernels work in. Callers may pass it instead of a ``[N, *C, 4]`` array (``rect_reduce``,
 #: ``rect_sums``, ``uses_window``): built from a filter's particle columns, no
 #: ``[..., 4]`` stack ever exists. On XLA:CPU stacking corners on a minor axis and taking
-#: them apart again for the corner rows were transposing copies: 7.5 ms of an N = 100,000
-#: colour step (2-core Intel Xeon, 2026-11-28).
+#: them apart again for the corner rows were transposing copies: 7.5 ms of traced kernel time
+#: in an N = 100,000 colour step (2-core Intel Xeon, 2026-11-28).
 RectColumns = tuple[Array, Array, Array, Array]
 
 
@@ -540,6 +540,14 @@ def _clip_columns(cols: RectColumns, width: int, height: int) -> RectColumns:
     x0 = jnp.clip(x0, 0, width)
     y0 = jnp.clip(y0, 0, height)
     return x0, y0, jnp.clip(x1, x0, width), jnp.clip(y1, y0, height)
+
+
+def _clipped_columns(rects, width: int, height: int) -> tuple[RectColumns, bool]:
+    """Clipped ``RectColumns`` of ``rects`` (a ``[4]`` rect becomes ``[1]`` columns) and
+    whether it was that single rect."""
+    single = not isinstance(rects, (tuple, list)) and jnp.ndim(rects) == 1
+    cols = rect_columns(jnp.asarray(rects)[None] if single else rects)
+    return _clip_columns(cols, width, height), single
 
 
 def _nonempty(cols: RectColumns) -> Array:
@@ -681,7 +689,7 @@ def _corner_index(rects, stride: int) -> tuple[Array, Array, Array, Array]:
     return lax.optimization_barrier(idx)
 
 
-def _corner_counts(table_flat: Array, idx: Array, n_bins: int) -> Array:
+def _corner_counts(table_flat: Array, idx: tuple[Array, ...], n_bins: int) -> Array:
     """Counts ``[..., n_bins] float32`` from a flat table (``[rows, channels]``, channels
     padded, ``_histogram_table``) and the four corner rows ``idx`` (``_corner_index``)."""
 
@@ -936,8 +944,7 @@ def rect_reduce(
     """
     fh, fw = bins.shape
     count_dtype = _check_count_dtype(count_dtype)
-    single = not isinstance(rects, (tuple, list)) and jnp.ndim(rects) == 1
-    rects = _clip_columns(rect_columns(jnp.asarray(rects)[None] if single else rects), fw, fh)
+    rects, single = _clipped_columns(rects, fw, fh)
 
     def general(rects):
         return _frame_counts(
@@ -1010,8 +1017,7 @@ def uses_window(
     if window is None:
         return jnp.asarray(False)
     fh, fw = frame_shape
-    single = not isinstance(rects, (tuple, list)) and jnp.ndim(rects) == 1
-    r = _clip_columns(rect_columns(jnp.asarray(rects)[None] if single else rects), fw, fh)
+    r, _ = _clipped_columns(rects, fw, fh)
     shape, origin = _window_placement(r, window, origin, (fh, fw))
     return window_covers(r, origin, shape, _check_count_dtype(count_dtype))
 
