@@ -336,7 +336,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--tune-malloc",
         action="store_true",
-        help="raise glibc mmap/trim thresholds before JAX starts (CPU speed switch)",
+        help="raise glibc mmap/trim thresholds and keep one malloc arena before JAX starts "
+        "(CPU speed switch)",
     )
     p.add_argument(
         "--compile-cache",
