@@ -645,35 +645,24 @@ def box_parts(boxes_xywh: Array, parts: int) -> Array:
     return jnp.stack([x, y, w, h], axis=-1)
 
 
-def _floor_half(v: Array) -> Array:
-    # boxes.xywh_to_rect's corner rounding, floor(v + 0.5), to int32
-    return jnp.floor(v + 0.5).astype(jnp.int32)
-
-
 def _box_columns(particles: Array) -> tuple[Array, Array, Array, Array]:
-    """``(x, y, w, h)`` columns ``[N]`` of ``[N, 8]`` particle boxes: ``_to_xywh`` unstacked."""
-    cx, cy, w, h = particles[:, 0], particles[:, 1], particles[:, 4], particles[:, 5]
+    """``(x, y, w, h)`` columns of ``[..., 8]`` particle boxes (``_to_xywh`` unstacked)."""
+    cx, cy, w, h = particles[..., 0], particles[..., 1], particles[..., 4], particles[..., 5]
     return cx - w / 2, cy - h / 2, w, h
 
 
 def _rect_columns(boxes: tuple[Array, Array, Array, Array], parts: int | None = None):
     """``RectColumns`` of ``(x, y, w, h)`` box columns ``[N]``: ``[N]`` each, or ``[N, parts]``
-    for the stripes of ``box_parts``. The same float operations as ``box_ops.xywh_to_rect``
-    of ``box_parts`` (so the same pixels), without a ``[..., 4]`` stack (histogram
-    ``RectColumns``)."""
+    for the stripes of ``box_parts`` (the same float operations, so the same pixels as
+    ``box_ops.xywh_to_rect(box_parts(...))``), without a ``[..., 4]`` stack."""
     x, y, w, h = boxes
     if parts is None:
-        return _floor_half(x), _floor_half(y), _floor_half(x + w), _floor_half(y + h)
+        return box_ops.xywh_columns_to_rect(x, y, w, h)
     k = jnp.arange(parts, dtype=jnp.float32)
     ys = y[:, None] + h[:, None] * k / parts
-    hs = h[:, None] / parts
-    shape = ys.shape
-    return (
-        jnp.broadcast_to(_floor_half(x)[:, None], shape),
-        _floor_half(ys),
-        jnp.broadcast_to(_floor_half(x + w)[:, None], shape),
-        _floor_half(ys + hs),
-    )
+    hs = jnp.broadcast_to(h[:, None] / parts, ys.shape)
+    xs, ws = (jnp.broadcast_to(v[:, None], ys.shape) for v in (x, w))
+    return box_ops.xywh_columns_to_rect(xs, ys, ws, hs)
 
 
 def _normalise(h: Array) -> Array:
@@ -914,7 +903,7 @@ def aspect_log_prior(particles: Array, mean: Array, sigma: Array) -> Array:
 
 
 def _to_xywh(particles: Array) -> Array:
-    return box_ops.cxcywh_to_xywh(particles[..., jnp.array([0, 1, 4, 5])])
+    return jnp.stack(_box_columns(particles), axis=-1)
 
 
 def _estimate(config: ColourConfig, particles: Array, lw: Array, robust_radius: Array) -> Array:

@@ -25,6 +25,7 @@ __all__ = [
     "xywh_to_cxcywh",
     "xywh_to_rect",
     "clip_rect",
+    "xywh_columns_to_rect",
     "clip_xywh",
     "iou",
     "box_area",
@@ -51,11 +52,17 @@ def xywh_to_rect(boxes: Array) -> Array:
     so a box whose corners are integers maps to exactly those pixels.
     """
     x, y, w, h = jnp.moveaxis(jnp.asarray(boxes, jnp.float32), -1, 0)
-    x0 = jnp.floor(x + 0.5)
-    y0 = jnp.floor(y + 0.5)
-    x1 = jnp.floor(x + w + 0.5)
-    y1 = jnp.floor(y + h + 0.5)
-    return jnp.stack([x0, y0, x1, y1], axis=-1).astype(jnp.int32)
+    return jnp.stack(xywh_columns_to_rect(x, y, w, h), axis=-1)
+
+
+def xywh_columns_to_rect(x: Array, y: Array, w: Array, h: Array) -> tuple[Array, ...]:
+    """``xywh_to_rect`` on separate float arrays: ``(x0, y0, x1, y1)`` int32 arrays (the
+    form ``histogram.RectColumns`` takes, no ``[..., 4]`` stack)."""
+
+    def corner(v: Array) -> Array:
+        return jnp.floor(v + 0.5).astype(jnp.int32)
+
+    return corner(x), corner(y), corner(x + w), corner(y + h)
 
 
 def clip_rect(rects: Array, width: int, height: int) -> Array:
