@@ -6,10 +6,15 @@ the cache turns their repeated XLA compiles into look-ups.
 
 The suite's time is mostly XLA compiling (about 250 programs, each jitted filter a
 few thousand operations), so the tests compile with cheaper XLA CPU settings
-(``TEST_XLA_FLAGS``: LLVM optimisation level 1, loop fusions emitted the older way).
-The same jaxprs run; only code generation differs. On the RGB-D toy scan this cut the
-compile from 15-17 s to 10-12 s and made the run 0.6 -> 0.75 s. Set
-``CPF_TEST_XLA_DEFAULTS=1`` to test with XLA's defaults (what a user gets).
+(``TEST_XLA_FLAGS``: no LLVM optimisation, loop fusions emitted the older way).
+The same jaxprs run; only code generation differs. LLVM level 1 instead of XLA's
+default 3 cut the RGB-D toy scan's compile from 15-17 s to 10-12 s (run 0.6 -> 0.75 s);
+level 0 instead of 1 cut the whole suite's test time from 1,681 to 1,516 CPU seconds
+(cold, 2 workers, 2026-11-29), but made the few tests whose running, not compiling,
+dominates up to 3.5x slower. Those are marked ``run_bound`` and compile at level 1
+(``RUN_BOUND_OPTIONS``, through ``jax.jit``'s ``compiler_options``; a module-scoped
+fixture uses ``run_bound_jit``). Set ``CPF_TEST_XLA_DEFAULTS=1`` to test with XLA's
+defaults (what a user gets).
 """
 
 from __future__ import annotations
@@ -18,14 +23,37 @@ import os
 from pathlib import Path
 
 #: XLA CPU flags for the test session (before JAX starts; appended to the user's own).
-TEST_XLA_FLAGS = "--xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
+TEST_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
 _FLAGS = os.environ.get("XLA_FLAGS", "")
-if os.environ.get("CPF_TEST_XLA_DEFAULTS", "") in ("", "0") and TEST_XLA_FLAGS not in _FLAGS:
+CHEAP_COMPILES = os.environ.get("CPF_TEST_XLA_DEFAULTS", "") in ("", "0")
+if CHEAP_COMPILES and TEST_XLA_FLAGS not in _FLAGS:
     os.environ["XLA_FLAGS"] = f"{_FLAGS} {TEST_XLA_FLAGS}".strip()
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+
+#: Compile options of the ``run_bound`` tests: LLVM level 1 (measured cold, level 0 ->
+#: 1: the tuning tests 120 -> 35 s and 63 -> 32 s, the AR1 size-velocity test 50 -> 10 s,
+#: the cascade's grid run with its lost-box re-run 105 -> 62 s).
+RUN_BOUND_OPTIONS = {"xla_backend_optimization_level": 1} if CHEAP_COMPILES else None
+_JIT = jax.jit
+
+
+def run_bound_jit(fun, **kwargs):
+    """``jax.jit`` compiling at ``RUN_BOUND_OPTIONS``: for programs that run long enough
+    that level 0's slower code costs more than its cheaper compile saves."""
+    kwargs.setdefault("compiler_options", RUN_BOUND_OPTIONS)
+    return _JIT(fun, **kwargs)
+
+
+@pytest.fixture(autouse=True)
+def _run_bound_compiles(request, monkeypatch):
+    """In a test marked ``run_bound``, every ``jax.jit`` (the test's and the library's,
+    looked up as ``jax.jit`` at call time) compiles at ``RUN_BOUND_OPTIONS``."""
+    if CHEAP_COMPILES and request.node.get_closest_marker("run_bound") is not None:
+        monkeypatch.setattr(jax, "jit", run_bound_jit)
+
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import run_bound_jit
 
 from cpf_jax.cascade import (
     CascadeConfig,
@@ -68,7 +69,7 @@ def grid_run(walk):
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
     # Frames are an argument: the lost-box test below runs other frames of the same shape
     # through this one compiled program.
-    run = jax.jit(
+    run = run_bound_jit(
         jax.vmap(
             lambda k, frames: track_cascade(filt, params, k, frames, box, pts, bg)[1],
             in_axes=(0, None),

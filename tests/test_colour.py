@@ -100,6 +100,7 @@ def test_motion_guided_walk_follows_a_fast_box_that_the_plain_walk_lags():
     assert mean_iou[True].mean() > mean_iou[False].mean() + 0.05, mean_iou
 
 
+@pytest.mark.run_bound
 def test_ar1_size_velocity_decay_stops_an_inherited_shrinking_drift():
     """AR1: every particle starts with the box shrinking 1 x 2.5 px/frame (5 %/frame,
     as a cloud that collapsed on a narrowing silhouette) on a standing person 50 px

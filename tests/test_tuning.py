@@ -150,6 +150,7 @@ def test_colour_gradient_matches_finite_differences(walk, model, names):
         assert float(grads[n]) == pytest.approx(fd, rel=0.1, abs=2e-5), n
 
 
+@pytest.mark.run_bound
 def test_tune_lowers_the_training_loss_and_stays_in_the_domain(walk):
     data, config = walk
     run = tuning.colour_runner(config)
@@ -228,6 +229,7 @@ def test_stack_sequences_rejects_mixed_lengths():
         tuning.stack_sequences([a, b])
 
 
+@pytest.mark.run_bound
 def test_tune_with_validation_returns_the_best_validated_parameters(walk):
     data, config = walk
     train = jax.tree_util.tree_map(lambda x: x[:1], data)
