@@ -9,9 +9,9 @@ few thousand operations), so the tests compile with cheaper XLA CPU settings
 (``TEST_XLA_FLAGS``: no LLVM optimisation, loop fusions emitted the older way).
 The same jaxprs run; only code generation differs. LLVM level 1 instead of XLA's
 default 3 cut the RGB-D toy scan's compile from 15-17 s to 10-12 s (run 0.6 -> 0.75 s);
-level 0 instead of 1 cut the whole suite's test time from 1,681 to 1,516 CPU seconds
-(cold, 2 workers, 2026-11-29), but made the few tests whose running, not compiling,
-dominates up to 3.5x slower. Those are marked ``run_bound`` and compile at level 1
+level 0 instead of 1 cut the suite's summed test durations from 1,681 to 1,516 s
+(cold caches, 2 workers, 2026-11-29), but made the few tests whose running, not
+compiling, dominates up to 3.5x slower. Those are marked ``run_bound`` and compile at level 1
 (``RUN_BOUND_OPTIONS``, through ``jax.jit``'s ``compiler_options``; a module-scoped
 fixture uses ``run_bound_jit``). Set ``CPF_TEST_XLA_DEFAULTS=1`` to test with XLA's
 defaults (what a user gets).
