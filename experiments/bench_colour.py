@@ -414,7 +414,7 @@ def time_table_pass(window: tuple[int, int], repeats: int = 50) -> dict:
     (``t + 1``) over an array shaped like the window's stored integral histogram
     (``[h + 1, w + 1, channels]`` uint16). The step writes and reads that table about
     three times (x pass, row loop, corner gathers), so hosts whose caches move it
-    slowly run the step slowly whatever its code (2026-11-29: 1.5-1.7 ms for the
+    slowly run the step slowly whatever its code (2026-11-29: 1.5-2.0 ms for the
     16.3 MB table on the 2-core Intel Xeon host, where the step misses its targets)."""
     channels = H._table_channels(ColourConfig().n_bins, jnp.uint16)
     table = jnp.zeros((window[0] + 1, window[1] + 1, channels), jnp.uint16)
@@ -647,7 +647,7 @@ def main(args) -> dict:
         results[str(n)]["baseline_scaled"] = n > BASELINE_MAX_N
         results[str(n)]["speedup"] = ms / results[str(n)]["ms_per_frame"]
     rate = {str(n): results[str(n)]["windowed"] for n in N_MAIN}
-    window = tuple(make_colour_step(1000)[2].window)
+    window = ColourConfig().with_window(BOX_WH, (FRAME_H, FRAME_W)).window
     table_pass = time_table_pass(window)
     print(
         f"One pass over the window's table ({table_pass['mb']:.1f} MB): "
