@@ -1073,7 +1073,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         if config.layout is not None:
             planes.append(layout_values(frame.colour, config.layout_feature))
         table = integral_image(jnp.concatenate(planes, axis=-1))
-        sums = rect_sums(table, _rect_columns(box_cols), channels=2) / CONTRAST_SCALE
+        sums = rect_sums(table, _rect_columns(box_cols), 2, config.chunk) / CONTRAST_SCALE
         score = sums[:, 0]
         if config.ring_margin > 0:
             # Centre-surround: person-coloured pixels just outside the box count
@@ -1081,7 +1081,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             m = config.ring_margin
             x, y, w, h = box_cols
             grown = (x + -m * w, y + -m * h, w + 2 * m * w, h + 2 * m * h)
-            grown_sums = rect_sums(table, _rect_columns(grown), channels=2) / CONTRAST_SCALE
+            grown_sums = rect_sums(table, _rect_columns(grown), 2, config.chunk) / CONTRAST_SCALE
             score = score - (grown_sums[:, 1] - sums[:, 1])
         score = score / area
         log_prior = 0.0

@@ -190,7 +190,9 @@ def resample_if(
     Returns ``(particles, log_weights, resampled)``: after resampling the
     log-weights are uniform; otherwise the normalised log-weights are kept.
     ``threshold = 1`` resamples every frame (SIR, thesis 2.1) except when the
-    weights are exactly uniform; ``threshold = 0`` never resamples.
+    weights are exactly uniform; ``threshold = 0`` never resamples. A custom
+    ``scheme`` (same signature as ``systematic``) that returns indices outside
+    ``[0, N)`` has them clipped to the first and last particle.
 
     Gradients: the uniform log-weights after resampling are ``-log N + l_a -
     stop_gradient(l_a)``, with ``l_a`` each particle's ancestor's log-weight
@@ -206,9 +208,16 @@ def resample_if(
     do = ess < threshold * n
 
     def _resample(_):
-        idx = scheme(key, lw, n)
-        taken = jax.tree_util.tree_map(lambda x: jnp.take(x, idx, axis=0), particles)
-        ancestor = jnp.take(lw, idx)
+        # Clipped (the schemes here already are; a custom one may not be), then taken
+        # without jnp.take's default fill mode, whose select ran over every gathered
+        # element of the [N, 8] particles (0.6 ms of an N = 100k colour step).
+        idx = jnp.clip(scheme(key, lw, n), 0, n - 1)
+
+        def take(x):
+            return x.at[idx].get(mode="promise_in_bounds", wrap_negative_indices=False)
+
+        taken = jax.tree_util.tree_map(take, particles)
+        ancestor = take(lw)
         # 0 in value (an ancestor is never drawn with weight 0 unless all are invalid,
         # when lw is uniform and finite); the guard keeps -inf - -inf out anyway.
         carried = jnp.where(jnp.isfinite(ancestor), ancestor - jax.lax.stop_gradient(ancestor), 0.0)

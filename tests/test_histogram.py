@@ -678,6 +678,31 @@ def test_integral_image_and_rect_sums_match_numpy():
     np.testing.assert_allclose(np.asarray(H.rect_sums(table, rects)), expected, rtol=1e-6)
 
 
+def test_rect_sums_in_chunks_equal_the_numpy_sums():
+    """``chunk``: the same sums, with a remainder block, for a [N, 2] rect axis too, under
+    jit and vmap (the colour step's contrast sums take this path)."""
+    rng = np.random.default_rng(4)
+    values = rng.integers(-4096, 4097, (37, 53, 3)).astype(np.int32)
+    x0 = rng.integers(-15, 60, 23)
+    y0 = rng.integers(-10, 45, 23)
+    rects = np.stack([x0, y0, x0 + rng.integers(-3, 40, 23), y0 + rng.integers(-3, 30, 23)], -1)
+
+    def ref(r):
+        a, b = max(r[0], 0), max(r[1], 0)
+        c, d = min(max(r[2], a), 53), min(max(r[3], b), 37)
+        return values[b:d, a:c, :2].reshape(-1, 2).sum(0)
+
+    expected = np.stack([ref(r) for r in rects])
+    f = jax.jit(lambda v, r: H.rect_sums(H.integral_image(v), r, 2, 5))
+    np.testing.assert_array_equal(np.asarray(f(values, rects)), expected)
+    cols = tuple(jnp.asarray(rects[:, k].reshape(-1, 1).repeat(2, 1)) for k in range(4))
+    paired = jax.jit(lambda v, c: H.rect_sums(H.integral_image(v), c, 2, 4))(values, cols)
+    np.testing.assert_array_equal(np.asarray(paired), expected[:, None].repeat(2, 1))
+    both = jax.vmap(f)(np.stack([values, -values]), np.stack([rects, rects[::-1]]))
+    np.testing.assert_array_equal(np.asarray(both[0]), expected)
+    np.testing.assert_array_equal(np.asarray(both[1]), -expected[::-1])
+
+
 def _grid_reference(values, box, rows, cols):
     """Plain-loop grid sums and pixel counts of one (x, y, w, h) box."""
     h, w = values.shape[:2]

@@ -116,6 +116,22 @@ def test_resample_if_threshold_and_jit_vmap():
     assert pb["x"].shape == (8, 6) and bool(jnp.all(didb))
 
 
+def test_resample_if_clips_a_custom_schemes_out_of_range_indices():
+    """A scheme of the same signature that returns indices outside [0, N) gets them
+    clipped (the first and last particle), never NaN or a silent wrap-around."""
+    particles = jnp.arange(6.0)[:, None] * jnp.ones((1, 8))
+
+    def wild(key, log_weights, num):
+        return jnp.array([-3, 0, 2, 5, 6, 40], jnp.int32)
+
+    lw = jnp.log(jnp.asarray(WEIGHTS))
+    p, _, did = jax.jit(lambda k: rs.resample_if(k, lw, particles, 1.0, wild))(
+        jax.random.PRNGKey(0)
+    )
+    assert bool(did)
+    np.testing.assert_array_equal(np.asarray(p[:, 0]), [0, 0, 2, 5, 5, 5])
+
+
 def test_reweight_matches_numpy_and_handles_invalid_likelihoods():
     lw0 = np.log(np.array([0.1, 0.2, 0.3, 0.4], np.float32))
     lik = np.array([-1.0, np.nan, 0.5, -np.inf], np.float32)
