@@ -210,7 +210,7 @@ def resample_if(
     def _resample(_):
         # Clipped (the schemes here already are; a custom one may not be), then taken
         # without jnp.take's default fill mode, whose select ran over every gathered
-        # element of the [N, 8] particles (0.6 ms of an N = 100k colour step).
+        # element of the [N, 8] particles (0.6 ms of traced time in an N = 100k colour step).
         idx = jnp.clip(scheme(key, lw, n), 0, n - 1)
 
         def take(x):
