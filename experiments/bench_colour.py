@@ -30,9 +30,13 @@ per particle crop + ``cv2.calcHist`` on H and S + ``cv2.compareHist``
 (``HISTCMP_BHATTACHARYYA``). It is measured up to N = 10,000 and scaled linearly
 above (its cost is per particle).
 
-The main settings (N = 1k, 10k, 100k x the four variants) are timed interleaved, in
+The main settings (N = 1k, 10k, 100k x the variants) are timed interleaved, in
 ``ROUNDS`` rounds, and the default step is re-timed in ``--fresh-repeats`` more fresh
 processes: this 2-core host's speed drifts by 20-40 % over minutes and between processes.
+The OpenCV loop is timed in the same rounds (``OPENCV_STEPS_PER_ROUND`` steps at the end
+of each), so that the speed-up divides times from the same minutes. (Until 2026-11-29 it
+was timed once after the JAX rounds, 3 steps at N = 10,000: its time swung from 499 to 817
+ms between runs, and the speed-up with it.)
 
 ``--tune-malloc`` (default on) calls ``cpf_jax.cpu_tuning.tune_malloc()`` before
 JAX allocates anything. ``--tune-xla`` (default on) adds
@@ -323,13 +327,17 @@ def time_jax_step(n: int, box_wh, frame, repeats: int, variant: str = "default")
     return time_jax_steps_interleaved([(n, box_wh, variant)], frame, repeats, rounds=1)[0]
 
 
-def time_jax_steps_interleaved(specs, frame, repeats: int, rounds: int = ROUNDS) -> list[dict]:
+def time_jax_steps_interleaved(
+    specs, frame, repeats: int, rounds: int = ROUNDS, each_round=None
+) -> list[dict]:
     """``time_jax_step`` for every ``(n, box_wh, variant)`` in ``specs``, interleaved.
 
     Each setting is compiled and warmed up first; then ``rounds`` rounds time
     ``repeats // rounds`` steps of every setting in turn (each continuing its own
     particle cloud). This host's speed drifts over minutes (±20-40 %): timed one
     after another, a slow spell fell on one setting alone; interleaved, it falls on all.
+    ``each_round()`` (optional) runs at the end of every round: the OpenCV loop's
+    timing (``OpenCVLoop``), so that the speed-up compares the same minutes.
     """
     frame_j = _frame(frame)
     per = max(1, repeats // rounds)
@@ -355,6 +363,8 @@ def time_jax_steps_interleaved(specs, frame, repeats: int, rounds: int = ROUNDS)
                 run["times"].append(time.perf_counter() - t0)
                 run["windowed"] += bool(info.windowed)
             run["state"], run["info"] = state, info
+        if each_round is not None:
+            each_round()
     out = []
     for run in runs:
         ms = _median_ms(run["times"])
@@ -394,19 +404,32 @@ def timed_steps(step, state, frame, key, repeats: int, warmup: int = WARMUP):
     return times, windowed / repeats, info
 
 
-def time_opencv(n: int, frame, repeats: int, bins=H.DEFAULT_BINS) -> float:
-    x, y = FRAME_W / 2 - BOX_WH[0] / 2, FRAME_H / 2 - BOX_WH[1] / 2
-    xywh = (x, y, float(BOX_WH[0]), float(BOX_WH[1]))
-    ref = reference_histogram(frame, xywh, bins)
-    particles = np.asarray(init_particles(jax.random.key(0), n, xywh))
-    rng = np.random.default_rng(0)
-    particles = opencv_step(rng, particles, frame, ref, bins)  # warm-up
-    times = []
-    for _ in range(repeats):
+class OpenCVLoop:
+    """The OpenCV baseline at ``n`` particles, one timed ``opencv_step`` per ``step()`` call
+    (its particle cloud carried on); ``ms()`` is the run's statistic of the times."""
+
+    def __init__(self, n: int, frame, bins=H.DEFAULT_BINS):
+        x, y = FRAME_W / 2 - BOX_WH[0] / 2, FRAME_H / 2 - BOX_WH[1] / 2
+        xywh = (x, y, float(BOX_WH[0]), float(BOX_WH[1]))
+        self.frame, self.bins = frame, bins
+        self.ref = reference_histogram(frame, xywh, bins)
+        self.rng = np.random.default_rng(0)
+        particles = np.asarray(init_particles(jax.random.key(0), n, xywh))
+        self.particles = opencv_step(self.rng, particles, frame, self.ref, bins)  # warm-up
+        self.times: list[float] = []
+
+    def step(self) -> None:
         t0 = time.perf_counter()
-        particles = opencv_step(rng, particles, frame, ref, bins)
-        times.append(time.perf_counter() - t0)
-    return _median_ms(times)
+        self.particles = opencv_step(self.rng, self.particles, self.frame, self.ref, self.bins)
+        self.times.append(time.perf_counter() - t0)
+
+    def ms(self) -> float:
+        return _median_ms(self.times)
+
+
+#: OpenCV steps timed per round of the main JAX timings, by N (about 0.6-0.8 s a step at
+#: N = 10,000 on the Intel host): 10 and 5 steps over the ``ROUNDS`` rounds.
+OPENCV_STEPS_PER_ROUND = {1_000: 2, 10_000: 1}
 
 
 def time_table_pass(window: tuple[int, int], repeats: int = 50) -> dict:
@@ -614,7 +637,23 @@ def main(args) -> dict:
         else ["default", "thesis", "histogram_only", "gradient", "layout_12x3"]
     )
     specs = [(n, BOX_WH, v) for n in N_MAIN for v in variants]
-    timed = dict(zip(specs, time_jax_steps_interleaved(specs, frame, repeats), strict=True))
+    # The OpenCV loop is timed in the same rounds as the JAX settings (at the end of each).
+    loops = (
+        {} if args.main_only else {n: OpenCVLoop(n, frame) for n in N_MAIN if n <= BASELINE_MAX_N}
+    )
+
+    def opencv_round():
+        for n, loop in loops.items():
+            for _ in range(OPENCV_STEPS_PER_ROUND.get(n, 1)):
+                loop.step()
+
+    timed = dict(
+        zip(
+            specs,
+            time_jax_steps_interleaved(specs, frame, repeats, each_round=opencv_round),
+            strict=True,
+        )
+    )
     for n in N_MAIN:
         r = timed[(n, BOX_WH, "default")]
         results[str(n)] = r
@@ -638,7 +677,7 @@ def main(args) -> dict:
     per_particle = None
     for n in N_MAIN:
         if n <= BASELINE_MAX_N:
-            ms = time_opencv(n, frame, repeats=3 if n >= 10_000 else 5)
+            ms = loops[n].ms()
             per_particle = ms / n
             print(f"OpenCV N={n:>7,}: {ms:8.1f} ms", flush=True)
         else:
@@ -718,8 +757,9 @@ def main(args) -> dict:
         "xla_flags_given": XLA_FLAGS_GIVEN,
         "repeats": repeats,
         "timing": f"{ARGS.stat} of repeats, jax.block_until_ready, {WARMUP} warm-up steps "
-        f"excluded; the main JAX settings interleaved in {ROUNDS} rounds (the OpenCV loop "
-        "and Table 3.2 timed one setting after another)",
+        f"excluded; the main JAX settings and the OpenCV loop ({OPENCV_STEPS_PER_ROUND} "
+        f"steps per round) interleaved in {ROUNDS} rounds (Table 3.2 timed one setting "
+        "after another)",
         "fast_path_rate": rate,
         "command": "python " + " ".join(["experiments/bench_colour.py"] + sys.argv[1:]),
     }
