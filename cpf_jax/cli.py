@@ -286,9 +286,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--contrast",
-        choices=("linear", "mixture"),
+        choices=("linear", "mixture", "off"),
         default=None,
-        help="--model rgb: per-bin weights of the centre-surround term (default linear)",
+        help="--model rgb: per-bin weights of the centre-surround term (default linear; "
+        "off: no such term, the thesis's likelihood)",
     )
     p.add_argument(
         "--unseen",
@@ -447,10 +448,12 @@ def _model_options(args: argparse.Namespace) -> tuple[dict, dict]:
         config_kw["model"] = args.dynamics
     colour_kw = {}
     if args.contrast is not None:
-        colour_kw["contrast"] = args.contrast
+        colour_kw["contrast"] = None if args.contrast == "off" else args.contrast
     if args.unseen is not None:
-        if args.contrast == "mixture":
-            raise UsageError("--unseen applies to the linear contrast, not --contrast mixture")
+        if args.contrast in ("mixture", "off"):
+            raise UsageError(
+                f"--unseen applies to the linear contrast, not --contrast {args.contrast}"
+            )
         colour_kw["unseen"] = args.unseen
     if args.layout is not None:
         colour_kw["layout"] = parse_layout(args.layout)

@@ -431,8 +431,11 @@ class ColourConfig:
     # Per-bin weights of the centre-surround term: "linear" (default,
     # ``contrast_weights``) ``P(person | bin) - threshold``; "mixture"
     # (``mixture_weights``) the log-likelihood ratio of a box pixel under a
-    # person-plus-background mixture vs the background.
-    contrast: str = "linear"
+    # person-plus-background mixture vs the background. None: no centre-surround
+    # term at all (the thesis's likelihood; ``params.contrast_weight`` is then unused),
+    # and the step skips its frame-wide summed-area table unless the layout term needs
+    # one; the same particles as "linear" with ``contrast_weight = 0``, faster.
+    contrast: str | None = "linear"
     # Linear contrast weights of colours seen neither in the initial box nor in its
     # ring (``contrast_weights``): "neutral" (default; weight 0: no evidence either
     # way) or "background" (weight ``-threshold``). The mixture contrast ignores it.
@@ -481,8 +484,8 @@ class ColourConfig:
             raise ValueError(f"rng must be one of {RNGS}, got {self.rng!r}")
         if not 0.0 <= self.collapse_ratio < 1.0:
             raise ValueError(f"collapse_ratio must be in [0, 1), got {self.collapse_ratio}")
-        if self.contrast not in CONTRASTS:
-            raise ValueError(f"contrast must be one of {CONTRASTS}, got {self.contrast!r}")
+        if self.contrast is not None and self.contrast not in CONTRASTS:
+            raise ValueError(f"contrast must be None or one of {CONTRASTS}, got {self.contrast!r}")
         if self.unseen not in UNSEEN:
             raise ValueError(f"unseen must be one of {UNSEEN}, got {self.unseen!r}")
         if self.layout is not None and (len(self.layout) != 2 or min(self.layout) < 1):
@@ -963,7 +966,9 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         box = jnp.asarray(box_xywh, jnp.float32)
         height, width = frame.colour.shape[:2]
         ref = reference_histogram(frame, box, config.bins, config.parts)
-        if config.contrast == "mixture":
+        if config.contrast is None:
+            contrast = jnp.zeros((n_bins,), jnp.float32)
+        elif config.contrast == "mixture":
             contrast = mixture_weights(
                 frame, box, config.bins, config.surround_margin, params.fill_ratio
             )
@@ -1067,27 +1072,33 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         # The contrast terms are linear in the counts: per-pixel weights summed over the
         # box (and the ring) from a summed-area table of the whole frame, so the
         # histogram window only has to hold the boxes. The same table holds the layout
-        # feature (channels 2...): one row loop instead of two (exact integer sums, the
-        # same as contrast_table and layout_table).
-        planes = [contrast_values(bin_idx, state.contrast)]
+        # feature (after the contrast's two channels): one row loop instead of two (exact
+        # integer sums, the same as contrast_table and layout_table).
+        planes = []
+        if config.contrast is not None:
+            planes.append(contrast_values(bin_idx, state.contrast))
         if config.layout is not None:
             planes.append(layout_values(frame.colour, config.layout_feature))
-        table = integral_image(jnp.concatenate(planes, axis=-1))
-        sums = rect_sums(table, _rect_columns(box_cols), 2, config.chunk) / CONTRAST_SCALE
-        score = sums[:, 0]
-        if config.ring_margin > 0:
-            # Centre-surround: person-coloured pixels just outside the box count
-            # against it, so a box smaller than the person loses.
-            m = config.ring_margin
-            x, y, w, h = box_cols
-            grown = (x + -m * w, y + -m * h, w + 2 * m * w, h + 2 * m * h)
-            grown_sums = rect_sums(table, _rect_columns(grown), 2, config.chunk) / CONTRAST_SCALE
-            score = score - (grown_sums[:, 1] - sums[:, 1])
-        score = score / area
+        table = integral_image(jnp.concatenate(planes, axis=-1)) if planes else None
+        score = None
+        if config.contrast is not None:
+            sums = rect_sums(table, _rect_columns(box_cols), 2, config.chunk) / CONTRAST_SCALE
+            score = sums[:, 0]
+            if config.ring_margin > 0:
+                # Centre-surround: person-coloured pixels just outside the box count
+                # against it, so a box smaller than the person loses.
+                m = config.ring_margin
+                x, y, w, h = box_cols
+                grown = (x + -m * w, y + -m * h, w + 2 * m * w, h + 2 * m * h)
+                grown_sums = (
+                    rect_sums(table, _rect_columns(grown), 2, config.chunk) / CONTRAST_SCALE
+                )
+                score = score - (grown_sums[:, 1] - sums[:, 1])
+            score = score / area
         log_prior = 0.0
         feature_table = None
         if config.layout is not None:
-            feature_table = table[..., 2:]
+            feature_table = table[..., 0 if config.contrast is None else 2 :]
             template = state.layout
             if config.layout_mirror:
                 mirror = mirror_layout(template, config.layout, config.layout_feature)
@@ -1104,7 +1115,9 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         def weigh(d2: Array, count) -> tuple:
             # Weights, estimate and the estimate's histogram, counted from the same
             # integral table as the particles (``count``: exact for any rect).
-            log_lik = -d2 / (2.0 * params.sigma * params.sigma) + params.contrast_weight * score
+            log_lik = -d2 / (2.0 * params.sigma * params.sigma)
+            if score is not None:
+                log_lik = log_lik + params.contrast_weight * score
             lw, invalid, ess, log_evidence = rs.reweight(state.log_weights, log_lik + log_prior)
             est = _estimate(config, particles, lw, params.robust_radius)
             est_xywh = _to_xywh(est)

@@ -148,6 +148,9 @@ def test_histogram_only_model_from_the_command_line():
     hist = ColourConfig(**config_kw, **colour_kw)
     assert hist == default.histogram_only() and hist != default
     assert hist.layout is None and not hist.template_update and hist.unseen == "background"
+    # --contrast off: no centre-surround term (ColourConfig.contrast = None).
+    config_kw, colour_kw = _model_options(build_parser().parse_args(["x", "--contrast", "off"]))
+    assert ColourConfig(**config_kw, **colour_kw).contrast is None
 
 
 @pytest.mark.parametrize(
@@ -168,6 +171,7 @@ def test_histogram_only_model_from_the_command_line():
         (["{folder}", "--model", "rgbd", "--contrast", "mixture"], "--model rgb"),
         (["{folder}", "--model", "rgbd", "--unseen", "neutral"], "--model rgb"),
         (["{folder}", "--contrast", "mixture", "--unseen", "neutral"], "linear contrast"),
+        (["{folder}", "--contrast", "off", "--unseen", "neutral"], "linear contrast"),
         (["{folder}", "--model", "rgbd", "--background", "empty"], "empty-scene"),
         (["{folder}", "--no-body-term"], "RGB-D models"),
         (["{folder}", "--plot", "run.jpg"], "--plot"),

@@ -350,6 +350,27 @@ def test_filter_tracks_with_the_optional_terms(contrast, layout, feature):
     assert (ious >= 0.5).mean() >= 0.95, ious.round(2)
 
 
+@pytest.mark.parametrize("layout", [None, (7, 3)])
+def test_no_contrast_term_is_the_linear_contrast_at_weight_zero(layout):
+    """``contrast=None`` drops the centre-surround term and its summed-area table: the
+    same boxes as the linear contrast with ``contrast_weight = 0``, whatever the weight
+    (then unused); with a layout, the layout reads the table's first channel."""
+    frames, gt = _moving(8)
+    zero = default_colour_params()._replace(contrast_weight=jnp.float32(0.0))
+
+    def run(contrast, params):
+        config = ColourConfig(n_particles=64, contrast=contrast, layout=layout)
+        filt = build_colour_filter(config)
+        return np.asarray(
+            jax.jit(lambda k: track_boxes(filt, params, k, frames, gt[0]))(jax.random.PRNGKey(3))
+        )
+
+    off = run(None, default_colour_params())
+    np.testing.assert_allclose(off, run("linear", zero), rtol=1e-6, atol=1e-4)
+    # The default weight moves the boxes, so the comparison above can fail.
+    assert np.abs(off - run("linear", default_colour_params())).max() > 0.1
+
+
 def test_config_rejects_bad_terms():
     with pytest.raises(ValueError, match="contrast"):
         ColourConfig(contrast="ratio")
