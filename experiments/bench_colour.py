@@ -524,10 +524,11 @@ def _markdown(results: dict) -> str:
             "",
             "(w %): only w % of that setting's timed steps ran on the histogram window; the "
             "rest ran the exact whole-frame fallback (`ColourInfo.windowed`), which is "
-            "slower. Under the AR1 model the box sizes drift with their size velocities, and at "
-            "large N the cloud's extreme boxes outgrow the window sized for the initial box, "
-            "or the 65,535 pixels a uint16 count holds: one such particle sends the whole "
-            "step to the fallback.",
+            "slower. Under the AR1 model the box sizes drift with their size velocities (and "
+            "under the random walk too when nothing but the histogram weighs them, as with "
+            "the OpenCV loop's likelihood), and at large N the cloud's extreme boxes outgrow "
+            "the window sized for the initial box, or the 65,535 pixels a uint16 count "
+            "holds: one such particle sends the whole step to the fallback.",
         ]
     table = results.get("table_3_2")
     if table:
