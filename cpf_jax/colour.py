@@ -49,7 +49,7 @@ The likelihood, in log space, is a sum of four terms:
   walk_away's first frame, mostly below the frame's edge, counted as half person,
   and a box lagging the shrinking person over the floor lost nothing (walk_away
   88 -> 100 % on training scene seeds 100-109, the other scenarios equal or
-  better).
+  better). ``ColourConfig.contrast = None`` drops the term and its table.
 * a log-normal prior on the box's aspect ratio (pedestrian boxes are about
   0.41 wide per unit of height);
 * ``layout_weight`` times the normalised cross-correlation of the box's 7 x 3
