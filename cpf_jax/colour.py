@@ -1053,10 +1053,6 @@ def build_colour_filter(config: ColourConfig) -> Filter:
 
         bin_idx = bin_index(frame.colour, config.bins)
         sqrt_q = jnp.sqrt(state.reference)  # [K, B]
-        # Normalise the contrast score by the previous estimate's area, so that
-        # its scale does not change as the person comes closer.
-        area = jnp.maximum(state.estimate[2] * state.estimate[3], 1.0)
-
         def part_distances(counts: Array, total: Array) -> Array:
             # counts [c, K, B], total [c, K] pixels -> [c]: mean squared Bhattacharyya
             # distance of the parts (every pixel has a bin, so total = the area).
@@ -1094,7 +1090,9 @@ def build_colour_filter(config: ColourConfig) -> Filter:
                     rect_sums(table, _rect_columns(grown), 2, config.chunk) / CONTRAST_SCALE
                 )
                 score = score - (grown_sums[:, 1] - sums[:, 1])
-            score = score / area
+            # Normalised by the previous estimate's area, so that the score's scale does
+            # not change as the person comes closer.
+            score = score / jnp.maximum(state.estimate[2] * state.estimate[3], 1.0)
         log_prior = 0.0
         feature_table = None
         if config.layout is not None:
