@@ -1053,6 +1053,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
 
         bin_idx = bin_index(frame.colour, config.bins)
         sqrt_q = jnp.sqrt(state.reference)  # [K, B]
+
         def part_distances(counts: Array, total: Array) -> Array:
             # counts [c, K, B], total [c, K] pixels -> [c]: mean squared Bhattacharyya
             # distance of the parts (every pixel has a bin, so total = the area).
