@@ -67,7 +67,7 @@ from cpf_jax.points import (
     default_point_params,
 )
 from cpf_jax.rgbd import RGBDConfig, RGBDInfo, RGBDParams, build_rgbd_filter, default_rgbd_params
-from cpf_jax.types import Filter, Frame, scan_filter
+from cpf_jax.types import Filter, Frame, memoised_build, scan_filter
 
 __all__ = [
     "BOX_SOURCES",
@@ -202,6 +202,7 @@ def find_body_points(
     return body_extremities(config.points, bm)
 
 
+@memoised_build
 def build_cascade(config: CascadeConfig) -> Filter:
     """``Filter(init, step)`` of the two-layer cascade.
 

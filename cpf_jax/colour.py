@@ -323,7 +323,7 @@ from cpf_jax.kernels.histogram import (
     suggest_window,
     uses_window,
 )
-from cpf_jax.types import Filter, Frame, scan_filter
+from cpf_jax.types import Filter, Frame, memoised_build, scan_filter
 
 __all__ = [
     "ColourConfig",
@@ -927,6 +927,7 @@ def _estimate(config: ColourConfig, particles: Array, lw: Array, robust_radius: 
     return jnp.where(total > 0, (wn @ particles) / jnp.where(total > 0, total, 1.0), best)
 
 
+@memoised_build
 def build_colour_filter(config: ColourConfig) -> Filter:
     """Return the colour-layer ``Filter(init, step)`` for a static ``config``."""
     n = config.n_particles

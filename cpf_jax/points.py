@@ -81,7 +81,7 @@ from cpf_jax.kernels import depth as dk
 from cpf_jax.kernels import graph as gk
 from cpf_jax.kernels import resample as rs
 from cpf_jax.kernels import spin as sk
-from cpf_jax.types import KINECT_V2_DEPTH, Filter, Intrinsics, scan_filter
+from cpf_jax.types import KINECT_V2_DEPTH, Filter, Intrinsics, memoised_build, scan_filter
 
 __all__ = [
     "WEIGHTINGS",
@@ -478,6 +478,7 @@ def _box_transform(old: Array, new: Array, xy: Array) -> Array:
     return nc + (xy - oc) * s
 
 
+@memoised_build
 def build_point_filter(config: PointFilterConfig) -> Filter:
     """``Filter(init, step)`` for ``P`` body points (``P`` is set by the points ``init`` gets)."""
     shape = config.window

@@ -292,7 +292,7 @@ from cpf_jax.kernels.histogram import (
     suggest_window,
     uses_window,
 )
-from cpf_jax.types import Filter, Frame, scan_filter
+from cpf_jax.types import Filter, Frame, memoised_build, scan_filter
 
 __all__ = [
     "VARIANTS",
@@ -1500,6 +1500,7 @@ def _main_run(counts: Array, kept: Array, gap: Array) -> Array:
     return kept & (run == jnp.argmax(totals[:-1]))
 
 
+@memoised_build
 def build_rgbd_filter(config: RGBDConfig) -> Filter:
     """``Filter(init, step)`` of ``config.variant``.
 

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
 from jax import Array
 
-__all__ = ["Frame", "Intrinsics", "Filter", "KINECT_V2_DEPTH", "scan_filter"]
+__all__ = ["Frame", "Intrinsics", "Filter", "KINECT_V2_DEPTH", "memoised_build", "scan_filter"]
 
 
 class Frame(NamedTuple):
@@ -48,6 +49,26 @@ class Filter(NamedTuple):
 
     init: Callable[..., Any]
     step: Callable[..., Any]
+
+
+#: How many filters (the most recently used configs) each ``memoised_build`` builder keeps.
+BUILD_CACHE_SIZE = 32
+
+
+def memoised_build(build: Callable[[Any], Filter]) -> Callable[[Any], Filter]:
+    """A filter builder that returns the same ``Filter`` object for equal configs.
+
+    JAX keys its trace, lowering and compile caches on the function object, so
+    ``jax.jit(filt.step)`` of a filter built again from an equal config traces, lowers
+    and compiles it again (a cascade step: tens of seconds on a laptop CPU; the disk
+    cache saves only the compile), while the same ``step`` object reuses all of it.
+    Every builder here is pure in its (frozen, hashable) config, so sharing the result
+    is safe: a script that tracks recording after recording (``cpf-track``'s ``main``), a
+    test suite building one config in many tests. (A new ``lambda`` around ``step`` is a
+    new function: JAX traces it again.)
+    ``build.cache_info()`` / ``build.cache_clear()`` as in ``functools.lru_cache``.
+    """
+    return functools.lru_cache(maxsize=BUILD_CACHE_SIZE)(build)
 
 
 def scan_filter(filt: Filter, params: Any, key: Array, inputs: Any, *init_args: Any):

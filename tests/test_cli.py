@@ -71,6 +71,27 @@ def test_init_override_and_max_frames(folder, tmp_path):
     np.testing.assert_allclose(res["boxes"][0], [100, 80, 60, 190])
 
 
+def test_a_second_run_in_the_process_reuses_the_built_filter(folder, tmp_path):
+    """The filter builders return the same ``Filter`` for equal configs
+    (``types.memoised_build``): a second ``main()`` with the same settings (a notebook,
+    a script looping over recordings) jits the same step object, so JAX neither traces
+    nor compiles it again, and it tracks the same; other settings build their own."""
+    from cpf_jax import colour
+
+    build = colour.build_colour_filter
+    argv = [str(folder), "--particles", "64", "--max-frames", "4", "--no-progress"]
+    out = [tmp_path / f"run{i}.csv" for i in range(3)]
+    assert main([*argv, "--out", str(out[0])]) == 0
+    before = build.cache_info()
+    assert main([*argv, "--out", str(out[1])]) == 0
+    after = build.cache_info()
+    assert (after.hits, after.misses) == (before.hits + 1, before.misses)
+    first, second = (read_results(p)["boxes"] for p in out[:2])
+    np.testing.assert_array_equal(first, second)
+    assert main([*argv, "--particles", "32", "--out", str(out[2])]) == 0
+    assert build.cache_info().misses == after.misses + 1
+
+
 def test_optional_colour_terms_from_the_command_line(folder, tmp_path, monkeypatch):
     out = tmp_path / "t.csv"
     argv = [str(folder), "--init", "100,80,60,190", "--max-frames", "3", "--out", str(out)]

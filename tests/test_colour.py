@@ -248,6 +248,30 @@ def test_config_validation():
         ColourConfig(rng="mt19937")
 
 
+def test_builders_return_one_filter_per_config():
+    """``memoised_build``: equal configs (built apart) give the same ``Filter`` object, so
+    ``jax.jit`` of its step reuses JAX's caches; a different config gets its own."""
+    import dataclasses
+
+    from cpf_jax.cascade import CascadeConfig, build_cascade
+    from cpf_jax.points import PointFilterConfig, build_point_filter
+    from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter
+
+    a = ColourConfig(n_particles=77).with_window((40, 90), (H, W))
+    b = ColourConfig(n_particles=77).with_window((40.0, 90.0), (H, W))
+    assert a == b and a is not b
+    assert build_colour_filter(a) is build_colour_filter(b)
+    other = dataclasses.replace(a, estimator="map")
+    assert build_colour_filter(a) is not build_colour_filter(other)
+    for build, config, change in [
+        (build_rgbd_filter, RGBDConfig(n_particles=33), {"n_particles": 34}),
+        (build_point_filter, PointFilterConfig(n_particles=9), {"n_particles": 10}),
+        (build_cascade, CascadeConfig(box=RGBDConfig(n_particles=33)), {"foreground": True}),
+    ]:
+        assert build(config) is build(dataclasses.replace(config))
+        assert build(config) is not build(dataclasses.replace(config, **change))
+
+
 def test_chunk_size_does_not_change_the_step(seq):
     # Blocking the gathers is a speed setting only: chunked and unchunked steps agree.
     frames, boxes = seq
