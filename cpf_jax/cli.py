@@ -544,8 +544,9 @@ def _track(args: argparse.Namespace, source, options: tuple[dict, dict]) -> int:
     live = isinstance(source, LiveSource)
     bg_note = None  # --background auto: which frames made the background model
     calib = _calibration(args, source)
-    register = _registrar(calib)
     auto = args.init is not None and args.init.strip().lower() == "auto"
+    # Depth is read by the RGB-D models, the cascade and --init auto's person finder.
+    register = _registrar(calib, uses_depth=args.model != "rgb" or args.points is not None or auto)
     # A background model: the RGB-D models' foreground, and --init auto's person finder.
     need_bg = args.model != "rgb" or auto
     if live:
@@ -554,7 +555,7 @@ def _track(args: argparse.Namespace, source, options: tuple[dict, dict]) -> int:
         n_frames = len(source)
 
         def read(i: int) -> Frame:
-            return register(source.read(i), source.names[i])
+            return register(source.read(i), f"{source.describe()} frame {i} ({source.names[i]})")
 
         start, box = _start_and_box(args, source, n_frames, auto)
         bg_frames = None
@@ -1145,11 +1146,26 @@ def _calibration(args: argparse.Namespace, source):
         raise
 
 
-def _registrar(calib):
+def _registrar(calib, uses_depth: bool = True):
     """``register(frame, name) -> Frame``: depth registered to colour by ``calib`` (one
-    jitted call per frame; the frame unchanged when there is no calibration)."""
+    jitted call per frame; the frame unchanged when there is no calibration).
+
+    Without a calibration the depth must already be registered to the colour image: a
+    depth image of another size is one error line naming the frame (``uses_depth``; the
+    colour layer alone never reads depth, so it leaves raw depth alone)."""
     if calib is None:
-        return lambda frame, name: frame
+
+        def unregistered(f, name: str):
+            if uses_depth and f.depth.shape != f.colour.shape[:2]:
+                raise UsageError(
+                    f"{name}: depth is {f.depth.shape[1]}x{f.depth.shape[0]} but colour is "
+                    f"{f.colour.shape[1]}x{f.colour.shape[0]}; without a calibration "
+                    "(--calib FILE, or the folder's calibration.json) depth must already be "
+                    "registered to the colour image"
+                )
+            return f
+
+        return unregistered
     import jax
 
     from cpf_jax.registration import register_depth

@@ -213,6 +213,24 @@ def test_bad_input_is_one_line_and_exit_2(folder, capsys, args, needle):
     assert len(err.splitlines()) == 1
 
 
+def test_depth_of_another_size_without_calibration_names_the_frame(folder, tmp_path, capsys):
+    """Depth that is not registered to the colour image (another size, no calibration) is
+    one error line naming the frame for the models that read depth; the colour layer
+    never reads depth and tracks."""
+    import shutil
+
+    bad = Path(shutil.copytree(folder, tmp_path / "raw_depth"))
+    for p in sorted((bad / "depth").glob("*.png")):
+        depth = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(p), depth[::2, ::2])
+    argv = [str(bad), "--particles", "64", "--max-frames", "2", "--no-progress"]
+    assert main([*argv, "--model", "rgbd"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "frame 0 (" in err, err
+    assert "depth is 256x212 but colour is 512x424" in err and "--calib" in err, err
+    assert main(argv) == 0
+
+
 def test_corrupt_image_names_the_file(folder, tmp_path, capsys):
     bad = tmp_path / "bad"
     (bad / "rgb").mkdir(parents=True)
