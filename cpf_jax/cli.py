@@ -860,9 +860,11 @@ def _start_and_box(
         )
     box = source.init_box
     if box is None or start is None:
-        raise UsageError(
-            f"{source.describe()}: no ground truth to start from; give --init x,y,w,h or auto"
-        )
+        why = "no ground truth to start from"
+        if source.gt_boxes is not None and source.visible is not None and not source.visible.any():
+            # Every line is 0,0,0,0, NaN or of a non-positive size (io.groundtruth).
+            why = "its ground truth shows the target in no frame"
+        raise UsageError(f"{source.describe()}: {why}; give --init x,y,w,h or auto")
     return start, box
 
 

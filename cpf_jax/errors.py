@@ -7,7 +7,7 @@ Messages name the file, frame or device and say what is wrong with it.
 
 from __future__ import annotations
 
-__all__ = ["CpfJaxError", "SourceError", "CameraUnavailable", "ViewerUnavailable"]
+__all__ = ["CpfJaxError", "SourceError", "CameraUnavailable", "ViewerUnavailable", "OutputError"]
 
 
 class CpfJaxError(Exception):
@@ -24,3 +24,7 @@ class CameraUnavailable(SourceError):
 
 class ViewerUnavailable(CpfJaxError):
     """A Rerun viewer to stream to cannot be reached (``RerunLogger(connect=...)``)."""
+
+
+class OutputError(CpfJaxError):
+    """An output file cannot be written (``RerunLogger``'s ``.rrd`` path)."""

@@ -33,7 +33,7 @@ from urllib.parse import urlsplit
 import numpy as np
 import rerun as rr
 
-from cpf_jax.errors import ViewerUnavailable
+from cpf_jax.errors import OutputError, ViewerUnavailable
 from cpf_jax.types import Frame, Intrinsics
 
 __all__ = ["RerunLogger", "weight_colours", "IMAGE_SPACE", "check_viewer"]
@@ -107,11 +107,21 @@ class RerunLogger:
             _spawn_viewer(self.rec)
         sinks: list[Any] = []
         if self.rrd is not None:
-            self.rrd.parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(str(self.rrd)))
+            if self.rrd.is_dir():
+                raise OutputError(f"{self.rrd}: is a directory, not an .rrd file to write")
+            try:
+                self.rrd.parent.mkdir(parents=True, exist_ok=True)
+                sinks.append(rr.FileSink(str(self.rrd)))
+            except (OSError, RuntimeError) as e:
+                raise OutputError(f"{self.rrd}: cannot write the Rerun recording ({e})") from None
         if spawn or connect is not None:
             sinks.append(rr.GrpcSink(connect))
-        self.rec.set_sinks(*sinks)
+        try:
+            self.rec.set_sinks(*sinks)
+        except RuntimeError as e:  # the file sink opens its file here
+            if self.rrd is None:
+                raise
+            raise OutputError(f"{self.rrd}: cannot write the Rerun recording ({e})") from None
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
         self._pinhole: tuple[Intrinsics, int, int] | None = None
         self._closed = False

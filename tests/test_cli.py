@@ -203,6 +203,8 @@ def test_histogram_only_model_from_the_command_line():
         (["{folder}", "--size-hold", "0.5"], "--dynamics ar1"),
         (["{folder}", "--dynamics", "ar1", "--no-hierarchical", "--size-hold", "0"], "guided"),
         (["{folder}", "--model", "rgbd", "--dynamics", "ar1", "--size-hold", "0"], "RGB-D"),
+        (["{folder}", "--rrd", "{folder}"], "is a directory, not an .rrd file"),
+        (["{folder}", "--rrd", "{folder}/rgb/000000.png/run.rrd"], "cannot write the Rerun"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(folder, capsys, args, needle):
@@ -239,6 +241,16 @@ def test_corrupt_image_names_the_file(folder, tmp_path, capsys):
     assert main([str(bad), "--init", "100,80,60,190", "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "000002.png" in err and len(err.strip().splitlines()) == 1
+
+
+def test_ground_truth_that_never_shows_the_target_asks_for_init(folder, tmp_path, capsys):
+    import shutil
+
+    bad = Path(shutil.copytree(folder, tmp_path / "never"))
+    (bad / "groundtruth_rect.txt").write_text("0,0,0,0\n" * (N_FRAMES - 1) + "5,5,-10,20\n")
+    assert main([str(bad), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "shows the target in no frame; give --init" in err and len(err.splitlines()) == 1
 
 
 def test_otb_style_folder_with_invisible_frames(tmp_path, capsys):
