@@ -392,8 +392,10 @@ def _run(args: argparse.Namespace) -> int:
     _compile_cache(args.compile_cache)
     if args.particles < 1:
         raise UsageError(f"--particles must be >= 1, got {args.particles}")
-    if args.sigma is not None and not args.sigma > 0:
-        raise UsageError(f"--sigma must be > 0, got {args.sigma}")
+    if args.sigma is not None and not 0 < args.sigma < float("inf"):
+        raise UsageError(f"--sigma must be a finite number > 0, got {args.sigma}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise UsageError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.plot is not None and Path(args.plot).suffix.lower() != ".png":
         raise UsageError(f"--plot writes a PNG: give a .png path, got {args.plot!r}")
     if args.plot is not None:

@@ -204,6 +204,8 @@ def test_histogram_only_model_from_the_command_line():
         (["{folder}", "--dynamics", "ar1", "--no-hierarchical", "--size-hold", "0"], "guided"),
         (["{folder}", "--model", "rgbd", "--dynamics", "ar1", "--size-hold", "0"], "RGB-D"),
         (["{folder}", "--rrd", "{folder}"], "is a directory, not an .rrd file"),
+        (["{folder}", "--max-frames", "-1"], "--max-frames must be >= 1"),
+        (["{folder}", "--sigma", "inf"], "--sigma must be a finite number"),
         (["{folder}", "--rrd", "{folder}/rgb/000000.png/run.rrd"], "cannot write the Rerun"),
     ],
 )
