@@ -134,17 +134,14 @@ def parse_points(text: str, source, start: int) -> tuple[np.ndarray, tuple[str, 
 
 
 def check_box(box: np.ndarray, size: tuple[int, int], where: str) -> None:
-    """Reject boxes that cannot start a track: non-positive size or no overlap with the frame."""
-    w, h = size
-    x, y, bw, bh = (float(v) for v in box)
-    if bw < 2 or bh < 2:
-        raise UsageError(f"{where}: initial box {x:g},{y:g},{bw:g},{bh:g} is smaller than 2x2 px")
-    ix = min(x + bw, w) - max(x, 0.0)
-    iy = min(y + bh, h) - max(y, 0.0)
-    if ix < 2 or iy < 2:
-        raise UsageError(
-            f"{where}: initial box {x:g},{y:g},{bw:g},{bh:g} lies outside the {w}x{h} frame"
-        )
+    """Reject boxes that cannot start a track (``cpf_jax.types.check_box``): not finite,
+    a side under 2 px, or no overlap with the ``size = (width, height)`` frame."""
+    from cpf_jax.types import check_box as check
+
+    try:
+        check(box, (size[1], size[0]), where)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 # --background auto: the AUTO_BACKGROUND_FRAMES emptiest of up to AUTO_CANDIDATES evenly

@@ -323,7 +323,7 @@ from cpf_jax.kernels.histogram import (
     suggest_window,
     uses_window,
 )
-from cpf_jax.types import Filter, Frame, memoised_build, scan_filter
+from cpf_jax.types import Filter, Frame, memoised_build, scan_filter, usable_box
 
 __all__ = [
     "ColourConfig",
@@ -964,7 +964,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         return particles, jnp.stack([oy, ox]).astype(jnp.int32)
 
     def init(params: ColourParams, key: Array, frame: Frame, box_xywh: Array) -> ColourState:
-        box = jnp.asarray(box_xywh, jnp.float32)
+        box, box_ok = usable_box(box_xywh, frame)
         height, width = frame.colour.shape[:2]
         ref = reference_histogram(frame, box, config.bins, config.parts)
         if config.contrast is None:
@@ -1001,7 +1001,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
             contrast=contrast,
             layout=layout,
             estimate=box,
-            lost=jnp.array(False),
+            lost=~box_ok,
             size0=box[2:4],
             velocity=jnp.zeros(2, jnp.float32),
         )

@@ -292,7 +292,7 @@ from cpf_jax.kernels.histogram import (
     suggest_window,
     uses_window,
 )
-from cpf_jax.types import Filter, Frame, memoised_build, scan_filter
+from cpf_jax.types import Filter, Frame, memoised_build, scan_filter, usable_box
 
 __all__ = [
     "VARIANTS",
@@ -1546,7 +1546,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         box_xywh: Array,
         background: Background | None = None,
     ) -> RGBDState:
-        box = jnp.asarray(box_xywh, jnp.float32)
+        box, _ = usable_box(box_xywh, frame)  # an unusable box under jit: the whole frame
         height, width = frame.colour.shape[:2]
         bg = (
             _no_background(frame)

@@ -7,9 +7,20 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
-__all__ = ["Frame", "Intrinsics", "Filter", "KINECT_V2_DEPTH", "memoised_build", "scan_filter"]
+__all__ = [
+    "Frame",
+    "Intrinsics",
+    "Filter",
+    "KINECT_V2_DEPTH",
+    "check_box",
+    "memoised_build",
+    "scan_filter",
+    "usable_box",
+]
 
 
 class Frame(NamedTuple):
@@ -49,6 +60,42 @@ class Filter(NamedTuple):
 
     init: Callable[..., Any]
     step: Callable[..., Any]
+
+
+def check_box(box, frame_hw: tuple[int, int], where: str = "") -> np.ndarray:
+    """``box`` (x, y, w, h) as ``float32 [4]`` if it can start a track, else ``ValueError``.
+
+    A box that cannot: not four finite numbers, a side under 2 px, or less than 2 x 2 px
+    of it inside the ``frame_hw = (height, width)`` frame. ``where`` (a file, a sequence)
+    starts the message. The filters' ``init`` calls it when the box is a concrete value;
+    under ``jit`` see :func:`usable_box`.
+    """
+    lead = f"{where}: " if where else ""
+    b = np.asarray(box, np.float64).reshape(-1)
+    if b.shape != (4,) or not np.all(np.isfinite(b)):
+        raise ValueError(f"{lead}initial box must be four finite numbers x,y,w,h, got {box}")
+    x, y, bw, bh = (float(v) for v in b)
+    text = f"{x:g},{y:g},{bw:g},{bh:g}"
+    if bw < 2 or bh < 2:
+        raise ValueError(f"{lead}initial box {text} is smaller than 2x2 px")
+    h, w = frame_hw
+    if min(x + bw, w) - max(x, 0.0) < 2 or min(y + bh, h) - max(y, 0.0) < 2:
+        raise ValueError(f"{lead}initial box {text} lies outside the {w}x{h} frame")
+    return b.astype(np.float32)
+
+
+def usable_box(box: Array, frame: Frame) -> tuple[Array, Array]:
+    """``(box, ok)`` for a filter's ``init``: a concrete box is checked (``check_box``,
+    ``ValueError``); under ``jit`` or ``vmap`` a box that is not finite or has a side
+    under 1 px becomes the whole frame, with ``ok`` False (the filter starts lost and
+    searches the frame), so that no NaN reaches the estimates."""
+    height, width = frame.colour.shape[:2]
+    if not isinstance(box, jax.core.Tracer):
+        check_box(box, (height, width))
+    box = jnp.asarray(box, jnp.float32)
+    ok = jnp.all(jnp.isfinite(box)) & (box[2] >= 1.0) & (box[3] >= 1.0)
+    whole = jnp.array([0.0, 0.0, width, height], jnp.float32)
+    return jnp.where(ok, box, whole), ok
 
 
 #: How many filters (the most recently used configs) each ``memoised_build`` builder keeps.

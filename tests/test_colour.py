@@ -248,6 +248,32 @@ def test_config_validation():
         ColourConfig(rng="mt19937")
 
 
+@pytest.mark.parametrize(
+    "box, message",
+    [
+        ([np.nan, 10, 20, 30], "four finite numbers"),
+        ([10, 10, 1, 30], "smaller than 2x2"),
+        ([W + 5, 10, 20, 30], "outside the 160x120 frame"),
+        ([-40, -40, 20, 30], "outside"),
+    ],
+)
+def test_init_rejects_a_box_that_cannot_start_a_track(seq, box, message):
+    """A concrete bad box is a ValueError naming it; under jit (no value to check) a box
+    that is not finite or has no size starts from the whole frame, lost, never NaN."""
+    frames, _ = seq
+    f0 = Frame(frames.colour[0], frames.depth[0])
+    with pytest.raises(ValueError, match=message):
+        FILTER.init(PARAMS, jax.random.key(0), f0, jnp.asarray(box, jnp.float32))
+    if message in ("four finite numbers", "smaller than 2x2"):
+        bad = jnp.asarray([np.nan, 10, 20, 30] if "finite" in message else [10, 10, 0, 30])
+        state = jax.jit(FILTER.init)(PARAMS, jax.random.key(0), f0, bad.astype(jnp.float32))
+        assert bool(state.lost)
+        np.testing.assert_array_equal(state.estimate, [0, 0, W, H])
+        f1 = Frame(frames.colour[1], frames.depth[1])
+        state, info = jax.jit(FILTER.step)(PARAMS, jax.random.key(1), state, f1)
+        assert np.isfinite(np.asarray(info.estimate)).all()
+
+
 def test_builders_return_one_filter_per_config():
     """``memoised_build``: equal configs (built apart) give the same ``Filter`` object, so
     ``jax.jit`` of its step reuses JAX's caches; a different config gets its own."""
