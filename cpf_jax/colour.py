@@ -323,7 +323,14 @@ from cpf_jax.kernels.histogram import (
     suggest_window,
     uses_window,
 )
-from cpf_jax.types import Filter, Frame, memoised_build, scan_filter, usable_box
+from cpf_jax.types import (
+    Filter,
+    Frame,
+    check_frame,
+    memoised_build,
+    scan_filter,
+    usable_box,
+)
 
 __all__ = [
     "ColourConfig",
@@ -964,6 +971,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
         return particles, jnp.stack([oy, ox]).astype(jnp.int32)
 
     def init(params: ColourParams, key: Array, frame: Frame, box_xywh: Array) -> ColourState:
+        check_frame(frame)
         box, box_ok = usable_box(box_xywh, frame)
         height, width = frame.colour.shape[:2]
         ref = reference_histogram(frame, box, config.bins, config.parts)
@@ -1009,6 +1017,7 @@ def build_colour_filter(config: ColourConfig) -> Filter:
     def step(
         params: ColourParams, key: Array, state: ColourState, frame: Frame
     ) -> tuple[ColourState, ColourInfo]:
+        check_frame(frame)
         height, width = frame.colour.shape[:2]
         k_prop, k_rec, k_res = jax.random.split(key, 3)
         particles = propagate(

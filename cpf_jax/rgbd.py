@@ -292,7 +292,14 @@ from cpf_jax.kernels.histogram import (
     suggest_window,
     uses_window,
 )
-from cpf_jax.types import Filter, Frame, memoised_build, scan_filter, usable_box
+from cpf_jax.types import (
+    Filter,
+    Frame,
+    check_frame,
+    memoised_build,
+    scan_filter,
+    usable_box,
+)
 
 __all__ = [
     "VARIANTS",
@@ -1546,6 +1553,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
         box_xywh: Array,
         background: Background | None = None,
     ) -> RGBDState:
+        check_frame(frame, needs_depth=True)
         box, _ = usable_box(box_xywh, frame)  # an unusable box under jit: the whole frame
         height, width = frame.colour.shape[:2]
         bg = (
@@ -1832,6 +1840,7 @@ def build_rgbd_filter(config: RGBDConfig) -> Filter:
     def step(
         params: RGBDParams, key: Array, state: RGBDState, frame: Frame
     ) -> tuple[RGBDState, RGBDInfo]:
+        check_frame(frame, needs_depth=True)
         height, width = frame.colour.shape[:2]
         k_prop, k_spread, k_flag, k_res, k_rec = jax.random.split(key, 5)
         k_det = jax.random.fold_in(key, 6)

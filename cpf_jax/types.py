@@ -17,6 +17,7 @@ __all__ = [
     "Filter",
     "KINECT_V2_DEPTH",
     "check_box",
+    "check_frame",
     "memoised_build",
     "scan_filter",
     "usable_box",
@@ -82,6 +83,30 @@ def check_box(box, frame_hw: tuple[int, int], where: str = "") -> np.ndarray:
     if min(x + bw, w) - max(x, 0.0) < 2 or min(y + bh, h) - max(y, 0.0) < 2:
         raise ValueError(f"{lead}initial box {text} lies outside the {w}x{h} frame")
     return b.astype(np.float32)
+
+
+def check_frame(frame: Frame, needs_depth: bool = False) -> None:
+    """``ValueError`` unless ``frame.colour`` is ``[H, W, 3] uint8`` and ``frame.depth`` (when
+    given, or when ``needs_depth``) is ``[H, W]``. Shapes and dtypes are static, so the
+    filters' ``init`` and ``step`` check them under ``jit`` too (once, while tracing): a
+    float image in [0, 1] or an RGBA one would otherwise be binned as if it were 8-bit RGB.
+    """
+    colour = frame.colour if hasattr(frame.colour, "dtype") else np.asarray(frame.colour)
+    shape = tuple(colour.shape)
+    if len(shape) != 3 or shape[-1] != 3 or colour.dtype != np.uint8:
+        raise ValueError(
+            f"frame colour must be [H, W, 3] uint8 RGB, got {colour.dtype} of shape {shape}"
+        )
+    if frame.depth is None:
+        if needs_depth:
+            raise ValueError("frame depth is None: the RGB-D models need [H, W] depth in mm")
+        return
+    depth_shape = tuple(np.shape(frame.depth))
+    if depth_shape != shape[:2]:
+        raise ValueError(
+            f"frame depth must be [H, W] = {list(shape[:2])} like the colour, got shape "
+            f"{list(depth_shape)}"
+        )
 
 
 def usable_box(box: Array, frame: Frame) -> tuple[Array, Array]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -272,6 +274,35 @@ def test_init_rejects_a_box_that_cannot_start_a_track(seq, box, message):
         f1 = Frame(frames.colour[1], frames.depth[1])
         state, info = jax.jit(FILTER.step)(PARAMS, jax.random.key(1), state, f1)
         assert np.isfinite(np.asarray(info.estimate)).all()
+
+
+def test_frames_of_the_wrong_kind_are_a_clear_error(seq):
+    """Colour must be [H, W, 3] uint8 and depth [H, W]: checked from shapes and dtypes, so
+    under jit too, before a float image in [0, 1] or an RGBA one is binned as 8-bit RGB."""
+    from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
+
+    frames, boxes = seq
+    colour, depth = frames.colour[0], frames.depth[0]
+    box = jnp.asarray(boxes[0])
+    state = FILTER.init(PARAMS, jax.random.key(0), Frame(colour, depth), box)
+    step = jax.jit(FILTER.step)
+    bad = [
+        (Frame(colour.astype(jnp.float32) / 255.0, depth), "uint8 RGB, got float32"),
+        (Frame(jnp.pad(colour, ((0, 0), (0, 0), (0, 1))), depth), "shape (120, 160, 4)"),
+        (Frame(colour[..., 0], depth), "shape (120, 160)"),
+        (Frame(colour, depth[::2]), "like the colour, got shape [60, 160]"),
+    ]
+    for frame, message in bad:
+        with pytest.raises(ValueError, match=re.escape(message)):
+            FILTER.init(PARAMS, jax.random.key(0), frame, box)
+        with pytest.raises(ValueError, match=re.escape(message)):
+            step(PARAMS, jax.random.key(1), state, frame)
+    FILTER.init(PARAMS, jax.random.key(0), Frame(colour, None), box)  # colour needs no depth
+    config = RGBDConfig(n_particles=16)
+    with pytest.raises(ValueError, match="RGB-D models need"):
+        build_rgbd_filter(config).init(
+            default_rgbd_params(config), jax.random.key(0), Frame(colour, None), box
+        )
 
 
 def test_builders_return_one_filter_per_config():
