@@ -86,10 +86,12 @@ def check_box(box, frame_hw: tuple[int, int], where: str = "") -> np.ndarray:
 
 
 def check_frame(frame: Frame, needs_depth: bool = False) -> None:
-    """``ValueError`` unless ``frame.colour`` is ``[H, W, 3] uint8`` and ``frame.depth`` (when
-    given, or when ``needs_depth``) is ``[H, W]``. Shapes and dtypes are static, so the
-    filters' ``init`` and ``step`` check them under ``jit`` too (once, while tracing): a
-    float image in [0, 1] or an RGBA one would otherwise be binned as if it were 8-bit RGB.
+    """``ValueError`` unless ``frame.colour`` is ``[H, W, 3] uint8`` and, with ``needs_depth``
+    (the models that read depth), ``frame.depth`` is ``[H, W]``. The colour layer never
+    reads depth, so it takes raw depth of another size or ``None``. Shapes and dtypes are
+    static, so the filters' ``init`` and ``step`` check them under ``jit`` too (once, while
+    tracing): a float image in [0, 1] or an RGBA one would otherwise be binned as if it
+    were 8-bit RGB.
     """
     colour = frame.colour if hasattr(frame.colour, "dtype") else np.asarray(frame.colour)
     shape = tuple(colour.shape)
@@ -97,10 +99,10 @@ def check_frame(frame: Frame, needs_depth: bool = False) -> None:
         raise ValueError(
             f"frame colour must be [H, W, 3] uint8 RGB, got {colour.dtype} of shape {shape}"
         )
-    if frame.depth is None:
-        if needs_depth:
-            raise ValueError("frame depth is None: the RGB-D models need [H, W] depth in mm")
+    if not needs_depth:
         return
+    if frame.depth is None:
+        raise ValueError("frame depth is None: the RGB-D models need [H, W] depth in mm")
     depth_shape = tuple(np.shape(frame.depth))
     if depth_shape != shape[:2]:
         raise ValueError(
@@ -112,8 +114,8 @@ def check_frame(frame: Frame, needs_depth: bool = False) -> None:
 def usable_box(box: Array, frame: Frame) -> tuple[Array, Array]:
     """``(box, ok)`` for a filter's ``init``: a concrete box is checked (``check_box``,
     ``ValueError``); under ``jit`` or ``vmap`` a box that is not finite or has a side
-    under 1 px becomes the whole frame, with ``ok`` False (the filter starts lost and
-    searches the frame), so that no NaN reaches the estimates."""
+    under 1 px becomes the whole frame, with ``ok`` False (the colour filter's state then
+    starts lost), so that no NaN reaches the estimates."""
     height, width = frame.colour.shape[:2]
     if not isinstance(box, jax.core.Tracer):
         check_box(box, (height, width))
