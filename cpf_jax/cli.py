@@ -49,12 +49,13 @@ import argparse
 import itertools
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from cpf_jax.errors import CpfJaxError, ViewerUnavailable
+from cpf_jax.errors import CpfJaxError, GroundTruthWarning, ViewerUnavailable
 from cpf_jax.points import BODY_POINT_DEPTH_OFFSET_MM, BODY_POINTS
 
 __all__ = ["main", "parse_box"]
@@ -354,10 +355,22 @@ def _fail(message: str) -> int:
     return EXIT_BAD_INPUT
 
 
+def _warn_line(message, category, filename, lineno, file=None, line=None, *, shown):
+    """``warnings.showwarning`` for a run: our input warnings as one line, others as usual."""
+    if issubclass(category, GroundTruthWarning):
+        print(f"cpf-track: warning: {message}", file=sys.stderr)
+    else:
+        shown(message, category, filename, lineno, file, line)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return _run(args)
+        with warnings.catch_warnings():
+            shown = warnings.showwarning
+            warnings.simplefilter("always", GroundTruthWarning)
+            warnings.showwarning = lambda *a, **k: _warn_line(*a, **k, shown=shown)
+            return _run(args)
     except (CpfJaxError, ValueError) as e:  # ValueError: config validation
         return _fail(str(e))
     except KeyboardInterrupt:

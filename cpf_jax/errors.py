@@ -7,7 +7,14 @@ Messages name the file, frame or device and say what is wrong with it.
 
 from __future__ import annotations
 
-__all__ = ["CpfJaxError", "SourceError", "CameraUnavailable", "ViewerUnavailable", "OutputError"]
+__all__ = [
+    "CpfJaxError",
+    "SourceError",
+    "CameraUnavailable",
+    "ViewerUnavailable",
+    "OutputError",
+    "GroundTruthWarning",
+]
 
 
 class CpfJaxError(Exception):
@@ -28,3 +35,9 @@ class ViewerUnavailable(CpfJaxError):
 
 class OutputError(CpfJaxError):
     """An output file cannot be written (``RerunLogger``'s ``.rrd`` path)."""
+
+
+class GroundTruthWarning(UserWarning):
+    """A ground-truth file has lines that count as "target not visible" without following
+    either convention for it (``0,0,0,0`` or all NaN): a negative or zero size, or one NaN
+    field, which is more often a typo than a hidden target."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import types
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 from cpf_jax import io as cio
-from cpf_jax.errors import CameraUnavailable, CpfJaxError, SourceError
+from cpf_jax.errors import CameraUnavailable, CpfJaxError, GroundTruthWarning, SourceError
 from cpf_jax.io import cameras, folders
 from cpf_jax.types import Frame, Intrinsics
 
@@ -573,6 +574,27 @@ def test_groundtruth_parse_error_names_file_and_line(tmp_path):
     (root / "groundtruth_rect.txt").write_text("1,2,3,4\n\n1,2,3,4\n")
     with pytest.raises(SourceError, match=r":2: "):
         cio.open_otb(root)
+
+
+def test_groundtruth_lines_that_cannot_be_boxes_are_named(tmp_path):
+    """0,0,0,0 and all-NaN lines are the two "not visible" conventions and pass in
+    silence; any other line read as not visible (a typo, most likely) is named."""
+    gt = tmp_path / "gt.txt"
+    gt.write_text("# x,y,w,h\n0,0,0,0\nNaN,NaN,NaN,NaN\n5,6,7,8\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        boxes, visible = cio.load_groundtruth(gt)
+    assert visible.tolist() == [False, False, True]
+    gt.write_text("5,6,7,8\n5,6,-7,8\n0,0,0,0\n5,nan,7,8\n5,6,7,0\n1,1,0,0\n1,1,-2,-2\n")
+    with pytest.warns(GroundTruthWarning) as record:
+        boxes, visible = cio.load_groundtruth(gt)
+    assert visible.tolist() == [True] + [False] * 6
+    np.testing.assert_array_equal(boxes[1:], 0.0)
+    (message,) = [str(r.message) for r in record]
+    assert "\n" not in message and str(gt) in message
+    assert "5 line(s)" in message and "and 2 more" in message
+    assert "line 2 '5,6,-7,8'" in message and "line 4 '5,nan,7,8'" in message
+    assert "line 3" not in message  # 0,0,0,0: the convention
 
 
 def test_groundtruth_count_mismatch(tmp_path):

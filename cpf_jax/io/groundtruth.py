@@ -3,18 +3,23 @@
 One line per frame, ``x, y, w, h`` separated by commas, whitespace, tabs or
 semicolons. OTB stores 1-based top-left corners; they are converted to the
 package's 0-based convention by subtracting 1 from ``x`` and ``y``. A line of
-``0,0,0,0`` (or NaN, or a non-positive size) means the target is not visible;
-its row is returned as ``0, 0, 0, 0`` with ``visible = False``.
+``0,0,0,0`` (OTB, LaSOT) or ``NaN,NaN,NaN,NaN`` (UAV123) means the target is not
+visible; its row is returned as ``0, 0, 0, 0`` with ``visible = False``. Any
+other line that cannot be a box (a zero or negative size, some fields NaN) is
+read the same way, and a :class:`~cpf_jax.errors.GroundTruthWarning` names its
+lines: such a line is more often a typo than a hidden target, and it drops its
+frame from the metrics.
 """
 
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from cpf_jax.errors import SourceError
+from cpf_jax.errors import GroundTruthWarning, SourceError
 
 __all__ = ["load_groundtruth", "load_occlusion"]
 
@@ -29,6 +34,10 @@ def load_groundtruth(path: Path | str, one_based: bool = True) -> tuple[np.ndarr
 
     Raises:
       SourceError: naming the file and line when a line does not hold 4 numbers.
+
+    Warns:
+      GroundTruthWarning: naming the lines read as "not visible" that are neither
+        ``0,0,0,0`` nor all NaN.
     """
     path = Path(path)
     try:
@@ -37,7 +46,7 @@ def load_groundtruth(path: Path | str, one_based: bool = True) -> tuple[np.ndarr
         raise SourceError(f"{path}: cannot read ground truth ({e.strerror or e})") from None
     while lines and not lines[-1].strip():
         lines.pop()
-    rows = []
+    rows, numbers = [], []
     for n, line in enumerate(lines, start=1):
         text = line.strip()
         if text.startswith("#"):
@@ -47,6 +56,7 @@ def load_groundtruth(path: Path | str, one_based: bool = True) -> tuple[np.ndarr
             if len(fields) != 4:
                 raise ValueError
             rows.append([float(f) for f in fields])
+            numbers.append(n)
         except ValueError:
             raise SourceError(
                 f"{path}:{n}: expected 4 numbers 'x,y,w,h', got {line.strip()!r}"
@@ -54,6 +64,18 @@ def load_groundtruth(path: Path | str, one_based: bool = True) -> tuple[np.ndarr
     boxes = np.asarray(rows, np.float32).reshape(-1, 4)
     finite = np.all(np.isfinite(boxes), axis=1)
     visible = finite & (np.nan_to_num(boxes[:, 2]) > 0) & (np.nan_to_num(boxes[:, 3]) > 0)
+    conventional = np.all(boxes == 0, axis=1) | np.all(np.isnan(boxes), axis=1)
+    odd = np.flatnonzero(~visible & ~conventional)
+    if odd.size:
+        shown = ", ".join(f"line {numbers[i]} {lines[numbers[i] - 1].strip()!r}" for i in odd[:3])
+        more = f" and {odd.size - 3} more" if odd.size > 3 else ""
+        warnings.warn(
+            GroundTruthWarning(
+                f"{path}: {odd.size} line(s) read as 'target not visible' that are neither "
+                f"0,0,0,0 nor all NaN (a zero or negative size, or a NaN field): {shown}{more}"
+            ),
+            stacklevel=2,
+        )
     if one_based:
         boxes[:, :2] -= 1.0
     boxes[~visible] = 0.0
