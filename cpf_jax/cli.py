@@ -46,6 +46,7 @@ interrupted.
 from __future__ import annotations
 
 import argparse
+import functools
 import itertools
 import sys
 import time
@@ -367,9 +368,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         with warnings.catch_warnings():
-            shown = warnings.showwarning
             warnings.simplefilter("always", GroundTruthWarning)
-            warnings.showwarning = lambda *a, **k: _warn_line(*a, **k, shown=shown)
+            warnings.showwarning = functools.partial(_warn_line, shown=warnings.showwarning)
             return _run(args)
     except (CpfJaxError, ValueError) as e:  # ValueError: config validation
         return _fail(str(e))
