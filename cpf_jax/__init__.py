@@ -1,62 +1,80 @@
 """cpf_jax: cascaded particle-filter tracking of people in RGB-D video, as pure jitted JAX.
 
-Layer 1 (``cpf_jax.colour``) tracks the person's box with H-S colour
-histograms (``cpf_jax.rgbd`` adds depth, grid cells and occlusion flags);
-layer 2 (``cpf_jax.points``) tracks points on the body in depth, and
-``cpf_jax.cascade`` runs both in one jitted step. The kernels they are built
-from live in ``cpf_jax.kernels``. Frame
-sources and results files are in ``cpf_jax.io``, metrics in
-``cpf_jax.metrics``, Rerun logging in ``cpf_jax.viz``, synthetic RGB-D
-sequences with ground truth in ``cpf_jax.synthetic``, batch runs over devices in
-``cpf_jax.batch``, gradient tuning of the filters' parameters with optax in
-``cpf_jax.tuning``, and success plots and other line charts (OpenCV, no plotting
-library) in ``cpf_jax.charts``.
+Every filter has one shape (``cpf_jax.filter``): a builder takes a frozen config and
+returns ``Filter(init, step)``; ``track`` runs any filter over a sequence as one
+``lax.scan``. Layer 1 tracks the person's box in colour (``cpf_jax.colour``) or in RGB-D
+with grid cells and occlusion flags (``cpf_jax.rgbd``); layer 2 tracks points on the body
+in depth (``cpf_jax.points``); ``cpf_jax.cascade`` runs both in one step. Parameters and
+their constraints: ``cpf_jax.params``; kernels: ``cpf_jax.kernels``; frame sources:
+``cpf_jax.io``; metrics: ``cpf_jax.metrics``; Rerun logging: ``cpf_jax.viz``; synthetic
+sequences: ``cpf_jax.synthetic``; batch runs: ``cpf_jax.batch``; gradient tuning:
+``cpf_jax.tuning``.
 
 Importing the package changes no global JAX configuration.
 """
 
-from cpf_jax.colour import (
-    ColourConfig,
-    ColourInfo,
-    ColourParams,
-    ColourState,
-    build_colour_filter,
-    default_colour_params,
-    reference_histogram,
+from cpf_jax.cascade import (
+    CascadeConfig,
+    build_box_filter,
+    build_cascade,
+    default_box_params,
+    default_cascade_params,
+)
+from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params
+from cpf_jax.dynamics import DEFAULT_TAU, MODELS, THESIS_TAU, MotionParams, propagate
+from cpf_jax.errors import CameraUnavailable, CpfJaxError, SourceError
+from cpf_jax.filter import (
+    BOX_INFO_FIELDS,
+    Cloud,
+    Context,
+    Filter,
+    particle_boxes,
     track,
     track_boxes,
 )
-from cpf_jax.dynamics import DEFAULT_TAU, MODELS, THESIS_TAU, MotionParams, propagate
-from cpf_jax.errors import CameraUnavailable, CpfJaxError, SourceError
 from cpf_jax.io import open_source
 from cpf_jax.metrics import summarise
-from cpf_jax.types import KINECT_V2_DEPTH, Filter, Frame, Intrinsics
+from cpf_jax.points import PointConfig, PointFrame, build_point_filter, default_point_params
+from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
+from cpf_jax.types import KINECT_V2_DEPTH, Frame, Intrinsics
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "ColourConfig",
-    "ColourInfo",
-    "ColourParams",
-    "ColourState",
-    "build_colour_filter",
-    "default_colour_params",
-    "reference_histogram",
-    "track",
-    "track_boxes",
+    "BOX_INFO_FIELDS",
     "DEFAULT_TAU",
-    "THESIS_TAU",
-    "MODELS",
-    "MotionParams",
-    "propagate",
-    "CameraUnavailable",
-    "CpfJaxError",
-    "SourceError",
-    "open_source",
-    "summarise",
     "KINECT_V2_DEPTH",
+    "MODELS",
+    "THESIS_TAU",
+    "CameraUnavailable",
+    "CascadeConfig",
+    "Cloud",
+    "ColourConfig",
+    "Context",
+    "CpfJaxError",
     "Filter",
     "Frame",
     "Intrinsics",
+    "MotionParams",
+    "PointConfig",
+    "PointFrame",
+    "RGBDConfig",
+    "SourceError",
+    "build_box_filter",
+    "build_cascade",
+    "build_colour_filter",
+    "build_point_filter",
+    "build_rgbd_filter",
+    "default_box_params",
+    "default_cascade_params",
+    "default_colour_params",
+    "default_point_params",
+    "default_rgbd_params",
+    "open_source",
+    "particle_boxes",
+    "propagate",
+    "summarise",
+    "track",
+    "track_boxes",
     "__version__",
 ]

@@ -2,13 +2,12 @@
 
 Usage::
 
-    from cpf_jax.batch import batch_mesh, run_sharded
+    from cpf_jax.batch import run_sharded, track_sharded
 
-    filt = build_colour_filter(config)
-    one = lambda key, frames, box: track_boxes(filt, params, key, frames, box)
-    boxes = run_sharded(one, keys, frames, box)  # [K, T, 4]; keys [K] spread over devices
-    # many sequences: batch a pytree (key, frames, box) and share nothing
-    boxes = run_sharded(lambda item: one(*item), (keys, frames_batch, boxes0))
+    boxes, lost = track_sharded(filt, params, keys, frames, box)  # [K, T, 4]; keys spread
+    # anything else: batch a pytree and share the rest, e.g. many sequences at once
+    one = lambda item: track_boxes(filt, params, *item)
+    boxes, lost = run_sharded(one, (keys, frames_batch, boxes0))
 
 ``run_sharded(fn, batched, *shared)`` applies ``fn(item, *shared)`` to every item
 along the leading axis of the pytree ``batched``. The items are split into equal
@@ -39,7 +38,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-__all__ = ["AXIS", "INNER", "batch_mesh", "run_sharded"]
+from cpf_jax.filter import Filter, track_boxes
+
+__all__ = ["AXIS", "INNER", "batch_mesh", "run_sharded", "track_sharded"]
 
 AXIS = "batch"
 INNER = ("map", "vmap")
@@ -122,3 +123,30 @@ def run_sharded(
     padded = _pad(batched, n, -(-n // d) * d)
     out = _program(fn, mesh, axis, inner, len(shared))(padded, *shared)
     return jax.tree_util.tree_map(lambda x: x[:n], out)
+
+
+@functools.lru_cache(maxsize=64)
+def _keyed(filt: Filter) -> Callable:
+    """One function object per filter (``run_sharded`` compiles one program per ``fn``)."""
+
+    def one(key, params, frames, box, context):
+        return track_boxes(filt, params, key, frames, box, context)
+
+    return one
+
+
+def track_sharded(
+    filt: Filter,
+    params: Any,
+    keys: Any,
+    frames: Any,
+    box: Any,
+    context: Any = None,
+    *,
+    mesh: Mesh | None = None,
+    inner: str = "map",
+):
+    """``track_boxes`` of any box filter for every key of ``keys [K]``, spread over the
+    devices of ``mesh``: ``([K, T, 4] boxes, [K, T] lost)``; the parameters, frames, box
+    and context are shared."""
+    return run_sharded(_keyed(filt), keys, params, frames, box, context, mesh=mesh, inner=inner)

@@ -1,47 +1,27 @@
-"""The cascade: layer 1 tracks the person's box, layer 2 tracks points on the body
-inside it, in one jitted step (thesis ch. 5, SPEC C4).
+"""The cascade (thesis ch. 5, SPEC C4): layer 1 tracks the person's box, layer 2 tracks
+points on the body inside it, in one jitted step.
 
-Usage::
+::
 
-    box = RGBDConfig(variant="grid-occlusion", n_particles=300)
-    config = CascadeConfig(
-        box=box.with_window(box_wh, frame_hw),  # without a window: exact but slower
-        points=PointFilterConfig(n_particles=100, weighting="combined"),
-    )
+    config = CascadeConfig(box=RGBDConfig().with_window(box[2:], frame_hw), points=PointConfig())
     filt = build_cascade(config)
     params = default_cascade_params(config)
-    state = filt.init(params, key, frame, box_xywh, points_xy, background)
-    state, info = filt.step(params, key, state, next_frame)
-    # or a whole sequence as one lax.scan (vmap over keys, settings or sequences):
-    state, infos = track_cascade(filt, params, key, frames, box_xywh, points_xy, background)
+    state = filt.init(params, key, frame, box, Context(background=bg, points=points_xy))
+    state, info = filt.step(params, key, state, frame)   # info.box, info.points.mean3d
 
-One frame (``step``): the layer-1 filter (``cpf_jax.rgbd.build_rgbd_filter``,
-any variant: ``"rgb"`` is the colour layer of ``cpf_jax.colour``) steps on the
-registered RGB-D frame; its box goes to the layer-2 point filter
-(``cpf_jax.points.build_point_filter``), which cuts its fixed-size depth window
-around the box (static shapes), segments the body there and moves the points'
-particles with the box (``PointFilterConfig.follow_box``) before weighting them
-by spin images and geodesic distances. Colour and depth share one pixel grid:
-the frame is registered (synthetic Kinect-v2 frames are; a real recording goes
-through ``cpf_jax.registration.register_frame``), and
-``PointFilterConfig.intrinsics`` must be the intrinsics of that grid (the
-depth camera's for Kinect-like frames, the colour camera's after registering
-depth to colour) for the 3D estimates to be in millimetres.
+Layer 1 is any box filter (``ColourConfig`` or ``RGBDConfig``); its box goes to the point
+filter, which cuts its fixed-size depth window around it (static shapes), segments the
+body and moves its particles with the box. Colour and depth share one pixel grid (the
+frame is registered), and ``PointConfig.intrinsics`` must be that grid's for the 3D
+estimates to be millimetres.
 
-Which box layer 2 gets (``CascadeConfig.box_source``): ``"estimate"`` (default),
-the weighted-mean whole-body box, or ``"report"``, the box layer 1 scores
-(``RGBDInfo.report``; for the grid variants a tight box of the visible pixels
-while the target is partly occluded). Recovery: on a frame where layer 1 has
-lost the target (``info.box.lost``), layer 2 keeps the last box layer 1 did
-not lose, so the points stay where the body was last seen instead of following
-a frame-wide search; the point filter's own recovery (every particle off the
-body) still applies. ``info.box_used`` is the box layer 2 worked in.
-
-With ``CascadeConfig.foreground`` and a background model, layer 2's body is
-restricted to the foreground pixels (``kernels.background.foreground_mask``)
-and takes the union of the sizeable components inside it
-(``PointFilterConfig.min_component_fraction``), which keeps a side-on body
-apart from a wall it touches in depth.
+Which box layer 2 gets (``box_source``): ``"estimate"``, layer 1's weighted mean (the
+whole body), or ``"report"``, the box layer 1 scores (``info.box``; for the grid
+variants a tight box of the visible pixels). While layer 1 has lost the target, layer 2
+keeps the last box it had, so that the points stay where the body was last seen. With
+``foreground`` layer 2's body is limited to foreground pixels against the background
+model: layer 1's own (which sees its background updates) when layer 1 is the RGB-D
+filter, else ``context.background``.
 """
 
 from __future__ import annotations
@@ -54,11 +34,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from cpf_jax.colour import ColourConfig, ColourParams, build_colour_filter, default_colour_params
+from cpf_jax.filter import Cloud, Context, Filter, memoised_build
 from cpf_jax.kernels.background import Background, foreground_mask
 from cpf_jax.points import (
-    PointFilterConfig,
+    PointConfig,
+    PointFrame,
     PointInfo,
-    PointInputs,
     PointParams,
     PointState,
     body_extremities,
@@ -66,8 +48,9 @@ from cpf_jax.points import (
     build_point_filter,
     default_point_params,
 )
-from cpf_jax.rgbd import RGBDConfig, RGBDInfo, RGBDParams, build_rgbd_filter, default_rgbd_params
-from cpf_jax.types import Filter, Frame, memoised_build, scan_filter
+from cpf_jax.rgbd import RGBDConfig, RGBDParams, build_rgbd_filter, default_rgbd_params
+from cpf_jax.rgbd.observe import as_background
+from cpf_jax.types import Frame
 
 __all__ = [
     "BOX_SOURCES",
@@ -75,9 +58,10 @@ __all__ = [
     "CascadeParams",
     "CascadeState",
     "CascadeInfo",
+    "build_box_filter",
+    "default_box_params",
     "default_cascade_params",
     "build_cascade",
-    "track_cascade",
     "check_points",
     "body_surface",
     "find_body_points",
@@ -86,59 +70,86 @@ __all__ = [
 BOX_SOURCES = ("estimate", "report")
 
 
+def build_box_filter(config: ColourConfig | RGBDConfig) -> Filter:
+    """The box filter of a layer-1 config: the colour layer or the RGB-D filter."""
+    if isinstance(config, ColourConfig):
+        return build_colour_filter(config)
+    if isinstance(config, RGBDConfig):
+        return build_rgbd_filter(config)
+    raise TypeError(f"a box filter needs a ColourConfig or an RGBDConfig, got {type(config).__name__}")
+
+
+def default_box_params(config: ColourConfig | RGBDConfig) -> ColourParams | RGBDParams:
+    """The default parameters of a layer-1 config."""
+    if isinstance(config, ColourConfig):
+        return default_colour_params()
+    return default_rgbd_params(config)
+
+
 @dataclasses.dataclass(frozen=True)
 class CascadeConfig:
-    """Static, hashable settings of both layers (changing one recompiles)."""
+    """Static, hashable settings of both layers."""
 
-    box: RGBDConfig = RGBDConfig()
-    points: PointFilterConfig = PointFilterConfig()
+    box: ColourConfig | RGBDConfig = RGBDConfig()
+    points: PointConfig = PointConfig()
     box_source: str = "estimate"  # "estimate" | "report" (module docstring)
-    # Layer 2's body only from foreground pixels of the background model (needs a
-    # background at init; without one every pixel counts as foreground).
+    # Layer 2's body only from foreground pixels of the background model.
     foreground: bool = False
-    # Thresholds of the foreground mask (kernels.background.foreground_mask).
+    # Thresholds of that foreground mask (kernels.background.foreground_mask).
     foreground_depth_mm: float = 150.0
     foreground_depth_rel: float = 0.05
 
     def __post_init__(self) -> None:
         if self.box_source not in BOX_SOURCES:
             raise ValueError(f"box_source must be one of {BOX_SOURCES}, got {self.box_source!r}")
-        if not isinstance(self.box, RGBDConfig):
-            raise TypeError(f"box must be an RGBDConfig, got {type(self.box).__name__}")
-        if not isinstance(self.points, PointFilterConfig):
-            raise TypeError(f"points must be a PointFilterConfig, got {type(self.points).__name__}")
+        if not isinstance(self.box, ColourConfig | RGBDConfig):
+            raise TypeError(
+                f"box must be a ColourConfig or an RGBDConfig, got {type(self.box).__name__}"
+            )
+        if not isinstance(self.points, PointConfig):
+            raise TypeError(f"points must be a PointConfig, got {type(self.points).__name__}")
+
+    @property
+    def layer1_background(self) -> bool:
+        """Whether layer 1 keeps the background model in its state (the RGB-D filter)."""
+        return isinstance(self.box, RGBDConfig)
 
 
 class CascadeParams(NamedTuple):
-    """Continuous parameters of both layers (a pytree; tunable as each layer's)."""
-
-    box: RGBDParams
+    box: ColourParams | RGBDParams
     points: PointParams
 
 
 def default_cascade_params(config: CascadeConfig | None = None) -> CascadeParams:
     config = CascadeConfig() if config is None else config
-    return CascadeParams(default_rgbd_params(config.box), default_point_params())
+    return CascadeParams(default_box_params(config.box), default_point_params())
 
 
 class CascadeState(NamedTuple):
-    box: Any  # layer 1's state (RGBDState; ColourState for the "rgb" variant)
+    box: Any  # layer 1's state
     points: PointState  # its ``box`` is the last box layer 2 worked in
-    background: Background | None
+    background: Background | None  # the context's background when layer 1 keeps none
+
+    @property
+    def cloud(self) -> Cloud:
+        """Layer 1's particle cloud."""
+        return self.box.cloud
 
 
 class CascadeInfo(NamedTuple):
-    box: RGBDInfo  # layer 1
+    box: Array  # [4] xywh, layer 1's box
+    lost: Array
+    ess: Array
+    log_evidence: Array
+    estimate: Array  # [4] xywh, layer 1's estimate
+    layer1: Any  # layer 1's whole info
     points: PointInfo  # layer 2
     box_used: Array  # [4] xywh, the box layer 2 worked in
 
 
 def check_points(points_xy, frame_hw: tuple[int, int]) -> np.ndarray:
-    """``[P, 2] float32`` initial points, or one clear ``ValueError``.
-
-    Points are ``(x, y)`` frame pixels in the box convention (a pixel ``(r, c)``
-    covers ``[c, c+1) x [r, r+1)``); each must be finite and inside the frame.
-    """
+    """``[P, 2] float32`` initial points, or one clear ``ValueError``: each must be finite
+    and inside the frame (frame pixels, box convention)."""
     p = np.asarray(points_xy, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 1:
         raise ValueError(f"points must be an array of shape [P, 2] with P >= 1, got {p.shape}")
@@ -147,15 +158,14 @@ def check_points(points_xy, frame_hw: tuple[int, int]) -> np.ndarray:
     h, w = frame_hw
     outside = (p[:, 0] < 0) | (p[:, 0] >= w) | (p[:, 1] < 0) | (p[:, 1] >= h)
     if outside.any():
-        bad = p[outside].tolist()
-        raise ValueError(f"points outside the {w}x{h} frame: {bad}")
+        raise ValueError(f"points outside the {w}x{h} frame: {p[outside].tolist()}")
     return p.astype(np.float32)
 
 
-def _point_inputs(
+def _point_frame(
     config: CascadeConfig, frame: Frame, box: Array, background: Background | None
-) -> PointInputs:
-    """Layer 2's inputs for ``box``: the depth, and the foreground when configured."""
+) -> PointFrame:
+    """Layer 2's frame for ``box``: the depth, and the foreground when configured."""
     fg = None
     if config.foreground and background is not None:
         fg = foreground_mask(
@@ -165,99 +175,72 @@ def _point_inputs(
             depth_abs=config.foreground_depth_mm,
             depth_rel=config.foreground_depth_rel,
         )
-    return PointInputs(frame.depth, box, fg)
+    return PointFrame(frame.depth, box, fg)
+
+
+def _background(context: Context | None) -> Background | None:
+    if context is None or context.background is None:
+        return None
+    return Background(
+        jnp.asarray(context.background.colour, jnp.float32),
+        jnp.asarray(context.background.depth, jnp.float32),
+    )
 
 
 def body_surface(
-    config: CascadeConfig, frame: Frame, box_xywh: Array, background: Background | None = None
+    config: CascadeConfig, frame: Frame, box: Array, background: Background | None = None
 ) -> Array:
-    """``[Hw * Ww, 3]`` mm: camera-frame points of layer 2's segmented body in ``box_xywh``
-    (the window, foreground and segmentation its step uses), NaN off the body.
-
-    For display: ``cpf-track --points`` logs it to Rerun as ``world/body/surface`` with
-    ``info.box_used``. Static shapes; jit it once (``config`` static). It repeats the
-    step's pre-processing, so it costs about as much as a layer-2 step's segmentation.
-    """
-    box = jnp.asarray(box_xywh, jnp.float32)
-    inp = _point_inputs(config, frame, box, background)
+    """``[Hw * Ww, 3]`` mm: camera-frame points of layer 2's segmented body in ``box`` (NaN
+    off the body), as a step sees it; for display (``cpf-track`` logs it to Rerun)."""
+    inp = _point_frame(config, frame, jnp.asarray(box, jnp.float32), background)
     bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
-    pts = jnp.where(bm.body[..., None], bm.points, jnp.nan)
-    return pts.reshape(-1, 3)
+    return jnp.where(bm.body[..., None], bm.points, jnp.nan).reshape(-1, 3)
 
 
 def find_body_points(
-    config: CascadeConfig, frame: Frame, box_xywh: Array, background: Background | None = None
+    config: CascadeConfig, frame: Frame, box: Array, background: Background | None = None
 ) -> tuple[Array, Array]:
-    """Points to start layer 2 on, found in the body inside ``box_xywh``: frame positions
-    ``[5, 2]`` of ``cpf_jax.points.AUTO_POINTS`` (head, hands, feet) and the geodesic
-    reach ``[4]`` mm of the hands and feet (``cpf_jax.points.body_extremities``).
-
-    The body is segmented as a layer-2 step does it (window, foreground,
-    components). ``cpf-track --points auto`` uses it on the start frame. Static
-    shapes; jit it once (``config`` static).
-    """
-    box = jnp.asarray(box_xywh, jnp.float32)
-    inp = _point_inputs(config, frame, box, background)
+    """Points to start layer 2 on, found on the body in ``box``: ``[5, 2]`` frame positions
+    of ``AUTO_POINTS`` and the reach ``[4]`` mm of the hands and feet
+    (``points.body_extremities``)."""
+    inp = _point_frame(config, frame, jnp.asarray(box, jnp.float32), background)
     bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
     return body_extremities(config.points, bm)
 
 
+def _layer2_background(config: CascadeConfig, state: CascadeState, s1) -> Background | None:
+    """The background layer 2's foreground is taken against (module docstring)."""
+    return s1.background if config.layer1_background else state.background
+
+
 @memoised_build
 def build_cascade(config: CascadeConfig) -> Filter:
-    """``Filter(init, step)`` of the two-layer cascade.
-
-    ``init(params, key, frame, box_xywh, points_xy, background=None) -> state``
-    and ``step(params, key, state, frame) -> (state, CascadeInfo)``.
-    """
-    layer1 = build_rgbd_filter(config.box)
+    """The two-layer cascade's ``Filter(init, step)``; ``init`` reads ``context.points``
+    and ``context.background``."""
+    layer1 = build_box_filter(config.box)
     layer2 = build_point_filter(config.points)
 
-    def inputs(frame: Frame, box: Array, background: Background | None) -> PointInputs:
-        return _point_inputs(config, frame, box, background)
-
-    def init(
-        params: CascadeParams,
-        key: Array,
-        frame: Frame,
-        box_xywh: Array,
-        points_xy: Array,
-        background: Background | None = None,
-    ) -> CascadeState:
+    def init(params, key, frame, box, context=None):
         k1, k2 = jax.random.split(key)
-        box = jnp.asarray(box_xywh, jnp.float32)
-        if background is not None:
-            background = Background(
-                jnp.asarray(background.colour, jnp.float32),
-                jnp.asarray(background.depth, jnp.float32),
-            )
-        s1 = layer1.init(params.box, k1, frame, box, background)
-        pts = jnp.asarray(points_xy, jnp.float32)
-        s2 = layer2.init(params.points, k2, inputs(frame, box, background), pts)
-        return CascadeState(s1, s2, background)
+        box = jnp.asarray(box, jnp.float32)
+        background = _background(context)
+        points = None if context is None else context.points
+        s1 = layer1.init(params.box, k1, frame, box, Context(background=background))
+        own = None if config.layer1_background else background
+        bg2 = s1.background if config.layer1_background else own
+        s2 = layer2.init(
+            params.points, k2, _point_frame(config, frame, box, bg2), box, Context(points=points)
+        )
+        return CascadeState(s1, s2, own)
 
-    def step(
-        params: CascadeParams, key: Array, state: CascadeState, frame: Frame
-    ) -> tuple[CascadeState, CascadeInfo]:
+    def step(params, key, state, frame):
         k1, k2 = jax.random.split(key)
         s1, i1 = layer1.step(params.box, k1, state.box, frame)
-        new_box = i1.estimate if config.box_source == "estimate" else i1.report
+        new_box = i1.estimate if config.box_source == "estimate" else i1.box
         box = jnp.where(i1.lost, state.points.box, new_box)
-        s2, i2 = layer2.step(params.points, k2, state.points, inputs(frame, box, state.background))
-        return CascadeState(s1, s2, state.background), CascadeInfo(i1, i2, box)
+        bg2 = _layer2_background(config, state, s1)
+        s2, i2 = layer2.step(params.points, k2, state.points, _point_frame(config, frame, box, bg2))
+        info = CascadeInfo(i1.box, i1.lost, i1.ess, i1.log_evidence, i1.estimate, i1, i2, box)
+        return CascadeState(s1, s2, state.background), info
 
-    return Filter(init=init, step=step)
-
-
-def track_cascade(
-    filt: Filter,
-    params: CascadeParams,
-    key: Array,
-    frames: Frame,
-    box_xywh: Array,
-    points_xy: Array,
-    background: Background | None = None,
-):
-    """A whole sequence as one ``lax.scan``: init on ``frames[0]`` with the box and
-    points ``[P, 2]``, steps on ``1..T-1``. Returns ``(final_state, infos)`` with
-    infos ``[T - 1, ...]``. Works under ``jit`` and ``vmap``."""
-    return scan_filter(filt, params, key, frames, box_xywh, points_xy, background)
+    return Filter(init, step)

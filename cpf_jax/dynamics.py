@@ -1,96 +1,49 @@
-"""Motion models for the box particle filter (thesis ch. 3).
+"""Motion models of the box particle filters (thesis ch. 3).
 
 Every particle carries the 8-tuple state of thesis eq. 3.1 as one row of an
 ``[N, 8]`` float32 array, in centre form and pixels per frame::
 
     (cx, cy, vx, vy, w, h, vw, vh)        # x, y, x', y', w, h, w', h'
 
-All models share that layout (fixed-size models keep ``vw = vh = 0`` and never
-change ``w, h``), and one signature::
-
-    model(key, particles [N, 8], previous [N, 8], tau [8], motion: MotionParams)
-        -> particles [N, 8]
-
-``previous`` is each particle's own state one frame earlier (resampled together
-with it), which the second-order models need. Noise is ``n_i = tau_i N(0, 1)``
-(thesis eq. 3.13) with the thesis's ``tau = (10, 10, 1, 1, 0.1, 0.1, 0.1, 0.1)`` available as
-``THESIS_TAU`` (thesis 3.3.1) and a tuned ``DEFAULT_TAU``.
+All models share that layout (fixed-size models keep ``vw = vh = 0`` and never change
+``w, h``) and one call, ``propagate(key, particles, previous, motion, model=...)``;
+``previous`` is each particle one frame earlier (resampled with it), which the
+second-order models need. Noise is ``n_i = tau_i N(0, 1)`` (thesis eq. 3.13).
 
 Models
 ------
-``ar1``          8-tuple first-order AR, thesis eqs. 3.14-3.17 (the printed
-                 matrix 3.11 is a typo; the equations are used).
-``ar1_fixed``    4-tuple (x, y, x', y') first-order AR with fixed box size,
-                 thesis eqs. 3.21-3.23.
-``ar2``          8-tuple second-order model s_t = s + A'(s - s_prev) + n,
-                 thesis eqs. 3.25-3.28, with A' of eq. 3.26 applied blockwise to
-                 (x, y, x', y') and (w, h, w', h').
+``ar1``          8-tuple first-order AR, thesis eqs. 3.14-3.17 (the printed matrix 3.11
+                 is a typo; the equations are used).
+``ar1_fixed``    4-tuple (x, y, x', y') first-order AR with fixed box size, eqs. 3.21-3.23.
+``ar2``          8-tuple second-order model ``s_t = s + A'(s - s_prev) + n``, eqs.
+                 3.25-3.28, with A' of eq. 3.26 applied blockwise to (x, y, x', y') and
+                 (w, h, w', h').
 ``ar2_fixed``    the same on the 4-tuple (fixed size).
-``random_walk``  s_t = s_{t-1} + n on (x, y, w, h), no velocity (thesis eq. 3.33).
+``random_walk``  ``s_t = s_{t-1} + n`` on (x, y, w, h), no velocity (eq. 3.33).
 
-Hierarchical (motion-guided) sampling, thesis 2.2 and 3.4, eqs. 3.30-3.32
---------------------------------------------------------------------------
-The thesis's idea: put more particles along the previous direction of motion,
-and let the box size change with motion towards/away from the camera (image y)
-rather than with motion across it (image x). Eqs. 3.31-3.32 add
-``a (x')^-1 + b (y')`` with ``a, b ~ N(1, 1)`` to ``w'`` and ``h'``; taken
-literally this divides by a velocity that is often zero. Our reading, in a
-numerically safe form:
+Motion-guided sampling (thesis 2.2 and 3.4, eqs. 3.30-3.32)
+----------------------------------------------------------
+The thesis puts more particles along the previous direction of motion and lets the box
+size change with motion along image y (towards or away from the camera) rather than
+along x. Eqs. 3.31-3.32 add ``a (x')^-1 + b (y')`` to ``w'`` and ``h'``, which divides by
+a velocity that is often zero; we use a bounded form:
 
-* Position noise is anisotropic in each particle's own motion frame. With speed
-  ``s = |(x', y')|``, direction ``e`` and normal ``e_perp``, the position noise
-  is ``tau_x * (g(s) n_along e + n_across e_perp / g(s))`` with
-  ``g(s) = 1 + guide_gain * s / (s + guide_speed)``: a stationary particle
-  gets the isotropic noise of ``ar1``; a moving one spreads up to
-  ``1 + guide_gain`` times further along its motion and proportionally less
-  across it (the covered area stays the same, so the particles are
-  *redistributed*, not added).
-* Size-velocity noise is scaled by ``(1 + size_gain_y * |y'|) /
-  (1 + size_gain_x * |x'|)``: the bounded, never-dividing-by-zero form of
-  ``a (x')^-1 + b (y')`` — size changes are likelier when the box moves along y
-  and less likely when it moves fast along x.
-* Size hold (``size_hold`` h in [0, 1], default 0): the thesis's other half of
-  the idea, "more particles ... in the expected direction of the velocity vector
-  but fewer samples associated with the width and height changes" when the box
-  moves across the image. A guided particle's inherited size velocity
-  ``(w', h')`` is multiplied by ``1 - h (1 - min(r, 1))`` before the step, with
-  ``r`` the size-noise scale above: a box moving fast along x keeps its size
-  (and stops carrying a stale size velocity); a particle at rest or moving
-  mostly along y (``r >= 1``) is unaffected. The velocities are each particle's
-  own, noise included, so around a standing person the guided share's size
-  velocities are damped too. Under the thesis's undamped AR1 the size
-  velocity is a random walk, and on a walk across the image the box's width
-  and height drift to 0.1-2.8 and 0.2-2.2 of the person's (walk_across_fast,
-  N = 50); the guided share then keeps the sizes that fit. The colour filter's
-  default is h = 1 (``cpf_jax.colour``); the RGB-D filter keeps 0 (its
-  importance weights use the proposal's closed-form density, which assumes it).
-  ``size_hold`` is tuned unconstrained and clipped to [0, 1] here.
-* A fraction ``1 - guided_fraction`` of the particles keeps the plain ``ar1``
-  noise, so the population never loses its isotropic diversity.
+* a share ``guided_fraction`` of the particles takes position noise stretched along its
+  own motion direction by ``g(s) = 1 + guide_gain s / (s + guide_speed)`` (speed ``s``)
+  and shrunk across it by ``1 / g(s)``: the same area, redistributed;
+* their size-velocity noise is scaled by ``(1 + size_gain_y |y'|) / (1 + size_gain_x
+  |x'|)``, the never-dividing form of ``a (x')^-1 + b (y')``;
+* ``size_hold`` h in [0, 1] multiplies a guided particle's inherited size velocity by
+  ``1 - h (1 - min(r, 1))`` (``r`` the scale above): a box moving across the image keeps
+  its size, the thesis's "fewer samples associated with the width and height changes".
 
-Size noise (all models): the width and height noises are correlated with
-``motion.size_correlation`` (0: the thesis's independent noise) and the width's
-is scaled by the box's aspect / 0.41, so a box mostly grows or shrinks as a
-whole, as a person's does when the distance to the camera changes.
+Guidance applies to ``ar1`` and ``ar1_fixed``, and to ``random_walk`` when the caller
+passes ``guide``, the target's estimated velocity: the guided share then drifts by it.
 
-Guidance applies on top of ``ar1`` or ``ar1_fixed`` (the models the thesis
-used it with), and to ``random_walk`` when the caller passes ``guide``, the
-target's estimated velocity ``[2]`` (the colour filter's smoothed estimate
-motion): the random walk has no velocity of its own, so the guided share of its
-particles drifts by ``guide`` and takes the position noise above with ``guide``
-as its motion (sizes diffuse as before). The rest diffuse around where they
-were, so a walker who stops or turns round keeps particles on him, which the
-ar1 velocity does not. Without ``guide`` the random walk is unguided.
-
-Damped size velocity (all models): ``size_velocity_decay`` (default 1, the
-thesis's models) multiplies the new state's size velocities ``(w', h')`` after
-the step, so they follow ``w'_t = decay (w'_{t-1} + n)``: a first-order AR
-velocity instead of a random walk. A cloud that was shrinking with a narrowing
-silhouette then stops shrinking after it instead of keeping its inherited
-velocity. The filters pass their ``params.size_velocity_decay`` (0.9). In
-``ar2`` the same two columns of the state are multiplied (eq. 3.26 reads them
-through ``s - s_prev``). Models without size velocities (``random_walk`` and
-the ``_fixed`` ones keep them at 0) are unaffected.
+Size noise: the width and height noises are correlated by ``size_correlation`` and the
+width's is scaled by the box's aspect / 0.41, so that a box grows or shrinks as a whole.
+``size_velocity_decay`` multiplies the size velocities after each step: a first-order
+AR velocity instead of the thesis's random walk (1 is the thesis's model).
 """
 
 from __future__ import annotations
@@ -103,6 +56,7 @@ import numpy as np
 from jax import Array
 
 from .kernels import fastrand
+from .params import P
 
 __all__ = [
     "THESIS_TAU",
@@ -111,26 +65,25 @@ __all__ = [
     "SIZE_VELOCITY_MODELS",
     "RNGS",
     "MotionParams",
+    "MOTION",
     "guide_frame",
+    "size_scale",
     "propagate",
 ]
 
-# thesis 3.3.1: tau1 = tau2 = 10, tau3 = tau4 = 1, tau5..tau8 = 0.1
+#: Thesis 3.3.1: tau1 = tau2 = 10, tau3 = tau4 = 1, tau5..tau8 = 0.1.
 THESIS_TAU = (10.0, 10.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1)
-# The library's default (for a 200 px tall box, see ColourConfig.tau_height):
-# found by a random search on synthetic training scenes (scene seeds 100-103,
-# never used in the reported tables). The thesis's 0.1 px size noise cannot
-# follow a person walking towards the camera or changing lanes.
+#: The library's noise for a 200 px tall box (``ColourConfig.tau_height``), chosen on the
+#: synthetic training scenes: the thesis's 0.1 px size noise cannot follow a person who
+#: walks towards the camera.
 DEFAULT_TAU = (15.0, 15.0, 0.6, 0.6, 5.5, 5.5, 0.8, 0.8)
 
 MODELS = ("ar1", "ar1_fixed", "ar2", "ar2_fixed", "random_walk")
-#: The models whose state carries a size velocity ``(w', h')`` (``size_velocity_decay``
-#: acts on these; the others keep it at 0).
+#: The models whose state carries a size velocity ``(w', h')``.
 SIZE_VELOCITY_MODELS = ("ar1", "ar2")
 
-#: Generators of the motion noise: "jax" (``jax.random``, threefry) or "hash"
-#: (``kernels.fastrand``: one threefry call for two seeds, then a counter hash;
-#: about 3x cheaper for the bulk draw, same keys-in, numbers-out contract).
+#: Generators of the motion noise: "jax" (``jax.random``) or "hash" (``kernels.fastrand``,
+#: a counter hash seeded by one threefry call: about 3x cheaper for the bulk draw).
 RNGS = ("jax", "hash")
 
 
@@ -148,14 +101,12 @@ def _draws(rng: str):
             lambda k, shape: jax.random.uniform(k, shape),
         )
     if rng == "hash":
-        # Counter-based: the columns cost only themselves.
         return fastrand.normal, fastrand.uniform
     raise ValueError(f"unknown rng {rng!r}; expected one of {RNGS}")
 
 
-# thesis eq. 3.26, applied to (x, y, x', y') and to (w, h, w', h')
-# (a NumPy constant: importing the library must not start a JAX backend, so that
-# XLA_FLAGS and cpu_tuning.tune_malloc set after the import still take effect)
+# Thesis eq. 3.26, applied to (x, y, x', y') and to (w, h, w', h'); a NumPy constant, so
+# that importing the library starts no JAX backend.
 _A2 = np.array(
     [[0.5, 0.0, 0.5, 0.0], [0.0, 0.5, 0.0, 0.5], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]],
     np.float32,
@@ -163,34 +114,32 @@ _A2 = np.array(
 
 
 class MotionParams(NamedTuple):
-    """Continuous parameters of the hierarchical (motion-guided) proposal."""
+    """Continuous parameters of the motion model and its motion-guided proposal."""
 
-    guided_fraction: Array  # share of particles that use the guided proposal, in [0, 1]
-    guide_gain: Array  # maximal extra stretch along the motion direction (>= 0)
+    tau: Array  # [8] noise scales (thesis eq. 3.13), for a box of ``tau_height`` px
+    guided_fraction: Array  # share of particles that take the guided proposal, in [0, 1]
+    guide_gain: Array  # largest extra stretch along the motion direction (>= 0)
     guide_speed: Array  # speed (px/frame) at which half of the stretch is reached (> 0)
     size_gain_x: Array  # how strongly motion along x damps size-velocity noise (>= 0)
     size_gain_y: Array  # how strongly motion along y excites size-velocity noise (>= 0)
-    # Correlation of the width and height noise (and of their velocities), in
-    # [0, 1): a person's box mostly scales as a whole when the distance changes.
-    size_correlation: Array = 0.0
-    # How much a guided particle moving along x keeps its size (module docstring,
-    # "Size hold"), in [0, 1]; 0: the size velocity is carried unchanged.
-    size_hold: Array = 0.0
+    size_correlation: Array  # correlation of the width and height noise, in [0, 1)
+    size_hold: Array  # how far a guided particle moving along x keeps its size, in [0, 1]
+    size_velocity_decay: Array  # share of the size velocities kept per frame (1: thesis)
 
 
-#: How each motion parameter is tuned by gradient (``cpf_jax.tuning`` bijectors), shared
-#: by the colour and RGB-D filters' ``PARAM_CONSTRAINTS``. ``size_hold``: identity,
-#: clipped to [0, 1] in ``propagate``, so the defaults on its bounds (colour 1, RGB-D 0)
-#: can be tuned from.
-MOTION_CONSTRAINTS = MotionParams(
-    "sigmoid", "softplus", "softplus", "softplus", "softplus", "sigmoid", "identity"
+#: The library's motion parameters. ``size_hold`` is tuned unconstrained and clipped to
+#: [0, 1] in ``propagate``, so that a default on a bound can be tuned from.
+MOTION = MotionParams(
+    tau=P(DEFAULT_TAU, "softplus"),
+    guided_fraction=P(0.5, "sigmoid"),
+    guide_gain=P(2.0, "softplus"),
+    guide_speed=P(4.0, "softplus"),
+    size_gain_x=P(0.5, "softplus"),
+    size_gain_y=P(0.5, "softplus"),
+    size_correlation=P(0.8, "sigmoid"),
+    size_hold=P(0.0),
+    size_velocity_decay=P(0.9, "sigmoid"),
 )
-
-
-def default_motion_params() -> MotionParams:
-    f = jnp.float32
-    return MotionParams(f(0.5), f(2.0), f(4.0), f(0.5), f(0.5), f(0.8), f(0.0))
-
 
 def _ar1(particles: Array, noise: Array) -> Array:
     cx, cy, vx, vy, w, h, vw, vh = jnp.moveaxis(particles, -1, 0)
@@ -258,7 +207,6 @@ def propagate(
     key: Array,
     particles: Array,
     previous: Array,
-    tau: Array,
     motion: MotionParams,
     *,
     model: str = "ar1",
@@ -266,25 +214,19 @@ def propagate(
     scale: Array | None = None,
     rng: str = "jax",
     guide: Array | None = None,
-    size_velocity_decay: Array | float = 1.0,
 ) -> Array:
     """Draw the next particle states from the motion model; ``[N, 8] -> [N, 8]``.
 
-    ``model``, ``hierarchical`` and ``rng`` (one of ``RNGS``) are static.
-    ``guide`` (``[2]`` px/frame, optional): the target's estimated velocity, which
-    guides the random walk under ``hierarchical`` (module docstring).
-    ``scale`` (``[N]``, optional) multiplies every particle's noise, e.g. by
-    its box size relative to a reference so that ``tau`` is expressed for a
-    reference box. Sizes are not clipped here; the filter keeps them in range.
-    ``size_velocity_decay`` (scalar, may be traced) multiplies the new size
-    velocities ``(w', h')``; 1 (default) is the thesis's undamped model (module
-    docstring, "Damped size velocity").
+    ``model``, ``hierarchical`` and ``rng`` (one of ``RNGS``) are static. ``scale [N]``
+    (optional) multiplies every particle's noise, so that ``motion.tau`` holds for a
+    reference box; ``guide [2]`` (px/frame, optional) is the target's estimated velocity,
+    which guides the random walk under ``hierarchical``. Sizes are not clipped here.
     """
     if model not in MODELS:
         raise ValueError(f"unknown motion model {model!r}; expected one of {MODELS}")
     normal, uniform = _draws(rng)
     k_noise, k_guide = jax.random.split(key)
-    tau = jnp.asarray(tau, jnp.float32)
+    tau = jnp.asarray(motion.tau, jnp.float32)
     if model == "random_walk":
         # Only positions and sizes move (the velocity columns are zeroed below): their
         # normals are the full draw's, the others are not drawn.
@@ -334,4 +276,4 @@ def propagate(
         out = out.at[:, 2:4].set(0.0).at[:, 6:8].set(0.0)
     if fixed:
         out = out.at[:, 4:6].set(particles[:, 4:6]).at[:, 6:8].set(0.0)
-    return out.at[:, 6:8].multiply(jnp.asarray(size_velocity_decay, out.dtype))
+    return out.at[:, 6:8].multiply(jnp.asarray(motion.size_velocity_decay, out.dtype))

@@ -3,13 +3,13 @@
 Usage::
 
     from cpf_jax import tuning
-    from cpf_jax.colour import PARAM_CONSTRAINTS, ColourConfig, default_colour_params
+    from cpf_jax.colour import COLOUR_PROPS, ColourConfig, build_colour_filter, default_colour_params
 
     data = tuning.stack_sequences([make_sequence("walk_across_medium", seed=s, n_frames=60)
                                    for s in (100, 101, 102)])
-    run = tuning.colour_runner(config)      # (params, key, sequence) -> [T, 4] boxes
-    result = tuning.tune(run, default_colour_params(), PARAM_CONSTRAINTS, data,
-                         names=("sigma", "contrast_weight"), steps=40)
+    run = tuning.runner(build_colour_filter(config))   # (params, key, sequence) -> [T, 4]
+    result = tuning.tune(run, default_colour_params(), COLOUR_PROPS, data,
+                         names=("histogram.sigma", "contrast.weight"), steps=40)
     result.params, result.history           # tuned parameters, loss per step
 
 What is differentiated
@@ -36,12 +36,12 @@ part through the likelihood of where they land: a biased gradient. Tune them by
 search, or with care. Discrete choices (grid size, bins, motion model) live in the
 static configs and are not tuned here.
 
-Parameters are optimised unconstrained: each module's ``PARAM_CONSTRAINTS`` names a
-bijector per field (``"softplus"`` for positive, ``"sigmoid"`` for ``(0, 1)``,
-``"identity"``; ``None`` marks a field that cannot be tuned), applied leaf-wise to
-nested parameter tuples such as ``MotionParams``. A step whose loss or gradient is not
-finite is skipped (the parameters keep their last finite values and the history
-records it), so a tuning run never ends on NaN parameters.
+Parameters are optimised unconstrained: each parameter's ``Prop`` (``cpf_jax.params``)
+names its bijector (``"softplus"`` for positive, ``"sigmoid"`` for ``(0, 1)``,
+``"identity"``) and whether it is trainable; parameters are named by dotted paths
+(``"histogram.sigma"``, ``"motion.tau"``). A step whose loss or gradient is not finite is
+skipped (the parameters keep their last finite values and the history records it), so a
+tuning run never ends on NaN parameters.
 """
 
 from __future__ import annotations
@@ -57,44 +57,23 @@ import optax
 from jax import Array
 
 from cpf_jax import charts
+from cpf_jax import params as pp
+from cpf_jax.filter import Context, Filter, track
 from cpf_jax.kernels import boxes as box_ops
 from cpf_jax.types import Frame
 
 __all__ = [
-    "BIJECTORS",
     "TuningData",
     "TuneResult",
     "stack_sequences",
-    "to_unconstrained",
-    "to_params",
     "diou_loss",
-    "colour_runner",
-    "rgbd_runner",
+    "runner",
     "make_loss",
+    "unconstrained",
     "tune",
     "progress",
     "history_chart",
 ]
-
-
-def _softplus_inverse(p: Array) -> Array:
-    # log(exp(p) - 1), stable for large p: p + log(1 - exp(-p)).
-    p = jnp.asarray(p, jnp.float32)
-    return p + jnp.log(-jnp.expm1(-p))
-
-
-def _logit(p: Array) -> Array:
-    p = jnp.asarray(p, jnp.float32)
-    return jnp.log(p) - jnp.log1p(-p)
-
-
-#: ``kind -> (constrain, unconstrain)``: maps between the optimiser's free values and
-#: the parameters' domains.
-BIJECTORS: dict[str, tuple[Callable[[Array], Array], Callable[[Array], Array]]] = {
-    "identity": (lambda u: u, lambda p: jnp.asarray(p, jnp.float32)),
-    "softplus": (jax.nn.softplus, _softplus_inverse),
-    "sigmoid": (jax.nn.sigmoid, _logit),
-}
 
 
 class TuningData(NamedTuple):
@@ -103,7 +82,7 @@ class TuningData(NamedTuple):
     frames: Frame  # [S, T, ...]
     boxes: Array  # [S, T, 4] ground-truth xywh; the filters start from boxes[:, 0]
     visible: Array  # [S, T] bool: frames that count in the loss
-    background: Any = None  # the RGB-D filter's per-sequence Background ([S, ...]) or None
+    background: Any = None  # per-sequence Background ([S, ...]) for the context, or None
 
 
 class TuneResult(NamedTuple):
@@ -138,54 +117,6 @@ def stack_sequences(sequences: Sequence, backgrounds: Sequence | None = None) ->
     return TuningData(frames, boxes, visible, background)
 
 
-def _field_constraint(constraints: NamedTuple, name: str):
-    if name not in constraints._fields:
-        raise ValueError(
-            f"unknown parameter {name!r}; expected one of {', '.join(constraints._fields)}"
-        )
-    kind = getattr(constraints, name)
-    if kind is None:
-        raise ValueError(f"parameter {name!r} cannot be tuned (its constraint is None)")
-    for leaf in jax.tree_util.tree_leaves(kind):
-        if leaf not in BIJECTORS:
-            raise ValueError(f"parameter {name!r}: unknown constraint {leaf!r}")
-    return kind
-
-
-def _map_kind(fn_index: int, kind, value):
-    """Apply the bijector ``kind`` (a string, or a tuple of strings for a nested field)."""
-    if isinstance(kind, str):
-        return jax.tree_util.tree_map(lambda v: BIJECTORS[kind][fn_index](v), value)
-    return type(kind)(*(_map_kind(fn_index, k, v) for k, v in zip(kind, value, strict=True)))
-
-
-def to_unconstrained(params: NamedTuple, constraints: NamedTuple, names: Sequence[str]) -> dict:
-    """``{name: free value}`` of the named fields of ``params`` (the optimiser's variables).
-
-    A value on the boundary of its domain (0 for ``"softplus"``, 0 or 1 for
-    ``"sigmoid"``) has no finite free value: start it inside (e.g. 1e-3) to tune it.
-    """
-    free = {}
-    for n in names:
-        kind = _field_constraint(constraints, n)
-        value = getattr(params, n)
-        u = _map_kind(1, kind, value)
-        if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(u)):
-            raise ValueError(
-                f"parameter {n!r} = {np.asarray(jax.tree_util.tree_leaves(value)).ravel().tolist()}"
-                " is on the boundary of its constraint: start it inside to tune it"
-            )
-        free[n] = u
-    return free
-
-
-def to_params(free: dict, params: NamedTuple, constraints: NamedTuple) -> NamedTuple:
-    """``params`` with the fields of ``free`` mapped back into their domains."""
-    return params._replace(
-        **{n: _map_kind(0, _field_constraint(constraints, n), u) for n, u in free.items()}
-    )
-
-
 def diou_loss(pred: Array, gt: Array, visible: Array | None = None) -> Array:
     """Mean DIoU loss of ``[T, 4]`` xywh boxes over the ``visible`` frames.
 
@@ -208,52 +139,36 @@ def diou_loss(pred: Array, gt: Array, visible: Array | None = None) -> Array:
     return jnp.sum(per_frame * w, axis=-1) / jnp.maximum(jnp.sum(w, axis=-1), 1.0)
 
 
-def colour_runner(config) -> Callable:
-    """``run(params, key, sequence) -> [T, 4]`` boxes of the colour filter (``config``:
-    a ``ColourConfig``; ``sequence``: one element of a ``TuningData``)."""
-    from cpf_jax.colour import build_colour_filter, track_boxes
+def runner(filt: Filter, box: str = "estimate") -> Callable:
+    """``run(params, key, sequence) -> [T, 4]`` boxes of any box filter over one element of
+    a ``TuningData`` (its background, if any, goes into the context).
 
-    filt = build_colour_filter(config)
-
-    def run(params, key: Array, seq: TuningData) -> Array:
-        return track_boxes(filt, params, key, seq.frames, seq.boxes[0])
-
-    return run
-
-
-def rgbd_runner(config, box: str = "estimate") -> Callable:
-    """``run(params, key, sequence) -> [T, 4]`` boxes of the RGB-D filter (``config``: an
-    ``RGBDConfig``; ``sequence``: one element of a ``TuningData`` with a background).
-
-    ``box="estimate"`` (default): the weighted-mean estimate, through which the
-    gradient reaches the likelihood. ``"report"``: the reported box (what the
-    tables score); with ``config.report = "pixels"`` it is the tight box of the
-    target's pixels around the estimate, which has no derivative with respect to
-    any parameter, and frames with no report (``lost``) fall back to the estimate.
+    ``box="estimate"`` (default): the state estimate (``info.estimate``, a weighted mean),
+    through which the gradient reaches the likelihood. ``"box"``: the box the filter
+    reports (what the tables score), the estimate where it reports none (``lost``); the
+    RGB-D filter's tight pixel box has no derivative with respect to any parameter.
     """
-    from cpf_jax.rgbd import build_rgbd_filter, track
-
-    if box not in ("estimate", "report"):
-        raise ValueError(f"box must be 'estimate' or 'report', got {box!r}")
-    filt = build_rgbd_filter(config)
+    if box not in ("estimate", "box"):
+        raise ValueError(f"box must be 'estimate' or 'box', got {box!r}")
 
     def run(params, key: Array, seq: TuningData) -> Array:
-        _, infos = track(filt, params, key, seq.frames, seq.boxes[0], seq.background)
+        context = Context(background=seq.background)
+        _, infos = track(filt, params, key, seq.frames, seq.boxes[0], context)
         boxes = infos.estimate
-        if box == "report":
-            boxes = jnp.where(infos.lost[:, None], infos.estimate, infos.report)
+        if box == "box":
+            boxes = jnp.where(infos.lost[:, None], infos.estimate, infos.box)
         return jnp.concatenate([seq.boxes[:1], boxes], axis=0)
 
     return run
 
 
-def make_loss(run: Callable, constraints: NamedTuple, keys: int = 1) -> Callable:
+def make_loss(run: Callable, props: NamedTuple, keys: int = 1) -> Callable:
     """``loss(free, params, key, data) -> scalar``: the mean ``diou_loss`` over the
     sequences of ``data`` (``lax.map``: one at a time, bounded memory) and ``keys``
     filter seeds each, with ``params`` updated from the free values ``free``."""
 
     def loss(free: dict, params, key: Array, data: TuningData) -> Array:
-        p = to_params(free, params, constraints)
+        p = pp.constrain(free, params, props)
         n_seq = data.boxes.shape[0]
         split = jax.random.split(key, n_seq * keys)  # raw [n, 2] or typed [n] keys
         seq_keys = split.reshape(n_seq, keys, *split.shape[1:])
@@ -271,10 +186,25 @@ def make_loss(run: Callable, constraints: NamedTuple, keys: int = 1) -> Callable
     return loss
 
 
+def unconstrained(params: NamedTuple, props: NamedTuple, names: Sequence[str]) -> dict:
+    """``{path: free value}`` of the named parameters; a value on the boundary of its
+    domain (0 for ``"softplus"``, 0 or 1 for ``"sigmoid"``) has no finite free value and
+    is one clear ``ValueError`` (start it inside, e.g. 1e-3, to tune it)."""
+    free = pp.unconstrain(params, props, list(names))
+    for n, u in free.items():
+        if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(u)):
+            value = np.asarray(jax.tree_util.tree_leaves(pp.get(params, n))).ravel().tolist()
+            raise ValueError(
+                f"parameter {n!r} = {value} is on the boundary of its constraint: start it "
+                "inside to tune it"
+            )
+    return free
+
+
 def tune(
     run: Callable,
     params: NamedTuple,
-    constraints: NamedTuple,
+    props: NamedTuple,
     data: TuningData,
     names: Sequence[str],
     *,
@@ -288,8 +218,9 @@ def tune(
 ) -> TuneResult:
     """Tune the fields ``names`` of ``params`` by ``steps`` optimiser steps on ``data``.
 
-    ``run(params, key, sequence) -> [T, 4]`` (``colour_runner``, ``rgbd_runner``, or
-    your own); ``constraints``: the module's ``PARAM_CONSTRAINTS``; ``optimizer``: any
+    ``run(params, key, sequence) -> [T, 4]`` (``runner`` or your own); ``props``: the
+    parameters' ``Prop`` tree (``COLOUR_PROPS``, ``rgbd_props(config)``); ``names``:
+    dotted paths of trainable parameters; ``optimizer``: any
     optax transformation (default ``optax.adam(0.05)``) on the free values divided by
     ``max(|free value at the start|, 1)``, so that its steps are relative for large
     values (a learning rate of 0.05 moves a weight of 28 by about 1.4). Every
@@ -311,12 +242,12 @@ def tune(
         raise ValueError(f"validate_every must be >= 1, got {validate_every}")
     optimizer = optimizer or optax.adam(0.05)
     key = jax.random.PRNGKey(0) if key is None else key
-    free = to_unconstrained(params, constraints, names)
+    free = unconstrained(params, props, names)
     # The optimiser's variables are the free values divided by max(|u0|, 1): a step of
     # size lr changes a parameter whose free value is large (a weight of 28, a floor of
     # -12, a depth width of 100 mm) by about lr of itself, not by lr in absolute terms.
     scales = jax.tree_util.tree_map(lambda u: jnp.maximum(jnp.abs(u), 1.0), free)
-    loss = make_loss(run, constraints, keys)
+    loss = make_loss(run, props, keys)
 
     def unscale(v):
         return jax.tree_util.tree_map(jnp.multiply, v, scales)
@@ -351,7 +282,7 @@ def tune(
         t0 = time.perf_counter()
         key, k = jax.random.split(key)
         free, opt_state, value, skipped = update(free, opt_state, k, params, data)
-        tuned = to_params(unscale(free), params, constraints)
+        tuned = pp.constrain(unscale(free), params, props)
         entry = {
             "step": step,
             "loss": float(value),
@@ -359,7 +290,7 @@ def tune(
             "seconds": time.perf_counter() - t0,
         }
         for n in names:
-            entry[n] = np.asarray(getattr(tuned, n)).tolist()
+            entry[n] = np.asarray(pp.get(tuned, n)).tolist()
         if validation is not None and ((step + 1) % validate_every == 0 or step == steps - 1):
             entry["validation"] = float(val_loss(free, params, validation))
             if entry["validation"] < best[0]:
@@ -371,7 +302,7 @@ def tune(
     if validation is not None:
         start = start_validation
         free = best[1]
-    return TuneResult(to_params(unscale(free), params, constraints), history, start)
+    return TuneResult(pp.constrain(unscale(free), params, props), history, start)
 
 
 def progress(label: str, names: Sequence[str]) -> Callable[[dict], None]:

@@ -1,0 +1,247 @@
+"""The segmented body in layer 2's depth window (thesis 4.1-4.3): hole filling, floor
+removal, segmentation, back-projection, surface graph, normals and geodesic distances.
+
+Coordinates: frame positions ``(x, y)`` are continuous depth-frame pixels in the box
+convention of ``cpf_jax.kernels.boxes`` (pixel ``(r, c)`` covers ``[c, c+1) x [r, r+1)``);
+window pixels are ``(row, col)`` of the fixed ``config.window`` grid; 3D points are
+camera millimetres. Thresholds are given per frame pixel at ``threshold_depth_mm`` and
+scale with the pixel pitch (depth x window scale / f): Kinect noise and neighbour spacing
+grow with depth, and the thesis's 10 / 15 mm cut a person at 3-4 m into pieces.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from cpf_jax.kernels import depth as dk
+from cpf_jax.kernels import graph as gk
+from cpf_jax.points.config import PointConfig
+
+__all__ = [
+    "BodyModel",
+    "body_centroid",
+    "body_model",
+    "body_extremities",
+    "window_pixels",
+    "pixel_centre",
+    "point_3d",
+]
+
+
+class BodyModel(NamedTuple):
+    """The segmented body in the window of one frame (all ``[Hw, Ww]`` unless noted)."""
+
+    window: dk.Window
+    rows: Array  # [Hw] frame rows sampled
+    cols: Array  # [Ww] frame cols sampled
+    depth: Array  # hole-filled depth, mm
+    body: Array  # bool, the segmented body
+    points: Array  # [Hw, Ww, 3] mm
+    normals: Array  # [Hw, Ww, 3]
+    spin_valid: Array  # bool: body pixel with a normal
+    weights: Array  # [4, Hw, Ww] surface graph
+    mesh_resolution: Array  # [] mm
+    reference_pixels: Array  # [R, 2] int32 (row, col) of the geodesic references
+    geodesic: Array  # [R, Hw, Ww] mm from each reference (zeros if unused)
+    sweeps: Array  # [] relaxation sweeps run
+
+
+def _component_sizes(labels: Array, valid: Array) -> Array:
+    """Per pixel, the number of valid pixels in its component."""
+    flat = labels.reshape(-1)
+    cnt = jnp.zeros(flat.size, jnp.float32).at[flat].add(valid.reshape(-1).astype(jnp.float32))
+    return cnt[flat].reshape(labels.shape)
+
+
+def _without_floor(config: PointConfig, pts: Array, valid: Array, tscale: Array) -> Array:
+    """``valid`` less the floor: pixels whose smoothed normal lies within
+    ``floor_max_tilt_deg`` of ``up`` (the floor touches the feet and, where its depth
+    changes slowly from row to row, joins the body or outgrows it)."""
+    w_all = gk.surface_graph(pts, valid, config.surface_max_dist_mm * tscale)
+    n_all, ok_all = dk.vertex_normals(pts, w_all, max(config.normal_smoothing, 1))
+    up = jnp.asarray(config.up, jnp.float32)
+    up = up / jnp.linalg.norm(up)
+    floor = ok_all & (n_all @ up > math.cos(math.radians(config.floor_max_tilt_deg)))
+    return valid & ~floor
+
+
+def _in_front(config: PointConfig, d: Array, roi: Array, labels: Array, valid: Array) -> Array:
+    """The pixels of components at least ``background_margin_mm`` in front of the box's
+    background, the median depth of the ROI's border in its upper 60 % (the floor fills the
+    bottom rows): in a tight box around a side-on person the wall behind can be the
+    largest component. When the largest such component is under 20 % of the largest
+    overall, the rule is not trusted and every valid pixel stays eligible."""
+    h = config.window[0]
+    edge = roi & ~dk.erode(roi)
+    rows_in = jnp.any(roi, axis=1)
+    r0 = jnp.argmax(rows_in)
+    r1 = h - 1 - jnp.argmax(rows_in[::-1])
+    upper = (jnp.arange(h) < r0 + 0.6 * (r1 - r0))[:, None]
+    z_bg = jnp.nanmedian(jnp.where(edge & upper & valid, d, jnp.nan))
+    zc = gk.component_mean(labels, d, valid)
+    front = valid & (zc < z_bg - config.background_margin_mm)
+    size = _component_sizes(labels, valid)
+    big_all = jnp.max(jnp.where(valid, size, 0.0))
+    big_front = jnp.max(jnp.where(front, size, 0.0))
+    trust = jnp.isfinite(z_bg) & (big_front >= 0.2 * big_all)
+    return jnp.where(trust, front, valid)
+
+
+def _segment(config: PointConfig, d: Array, roi: Array, valid: Array, tscale: Array) -> Array:
+    """The body (thesis 4.1.2): the largest component of the ``|dz| < seg_max_dz_mm``
+    pixel graph among the eligible pixels, or with ``min_component_fraction`` the union of
+    the sizeable components (with a foreground mask the person is every sizeable one:
+    side-on, the near arm and leg are apart from the trunk in depth)."""
+    edges = gk.pixel_graph(d, valid, config.seg_max_dz_mm * tscale)
+    labels = gk.connected_components(edges)
+    eligible = valid
+    if config.background_margin_mm is not None:
+        eligible = _in_front(config, d, roi, labels, valid)
+    if config.min_component_fraction is None:
+        return gk.largest_component(labels, eligible)
+    size = _component_sizes(labels, eligible)
+    return eligible & (size >= config.min_component_fraction * jnp.max(size))
+
+
+def body_centroid(body: Array) -> Array:
+    """``[2]`` (row, col) centroid of a window mask (the window's corner when empty)."""
+    rr, cc = jnp.meshgrid(
+        jnp.arange(body.shape[0], dtype=jnp.float32),
+        jnp.arange(body.shape[1], dtype=jnp.float32),
+        indexing="ij",
+    )
+    n = jnp.maximum(jnp.sum(body), 1)
+    return jnp.stack([jnp.sum(jnp.where(body, rr, 0.0)), jnp.sum(jnp.where(body, cc, 0.0))]) / n
+
+
+def _reference_pixels(config: PointConfig, body: Array) -> Array:
+    """``[R, 2]`` (row, col) body pixels of the geodesic references: the head's centre above
+    the neck (thesis 4.1.3) or the body's centroid."""
+    centres = [
+        dk.head_neck_split(body).head_centre if ref == "head" else body_centroid(body)
+        for ref in config.references
+    ]
+    ref_pix, _ = dk.nearest_true(body, jnp.stack(centres))
+    return ref_pix
+
+
+def _geodesics(
+    config: PointConfig, w: Array, body: Array, ref_pix: Array
+) -> tuple[Array, Array]:
+    """Geodesic distances ``[R, Hw, Ww]`` (mm) from each reference over the surface graph
+    (min-plus relaxation, thesis 4.3) and the sweeps run; zeros without geodesic weights."""
+    shape = config.window
+    if not config.uses_geodesic:
+        return jnp.zeros((len(config.references),) + shape, jnp.float32), jnp.int32(0)
+    src = (
+        (jnp.arange(shape[0])[None, :, None] == ref_pix[:, 0, None, None])
+        & (jnp.arange(shape[1])[None, None, :] == ref_pix[:, 1, None, None])
+        & body
+    )
+    geo, sweeps = jax.vmap(
+        lambda s_: gk.geodesic_distances(w, s_, config.max_sweeps, return_sweeps=True)
+    )(src)
+    return geo, jnp.max(sweeps)
+
+
+def body_model(
+    config: PointConfig, depth: Array, box: Array, foreground: Array | None = None
+) -> BodyModel:
+    """The body in the ``config.window`` window cut around ``box`` (xywh) of ``depth [H, W]``
+    (uint16 mm): holes filled (thesis 4.1.1), floor removed, segmented, back-projected,
+    its surface graph (edges up to ``surface_max_dist_mm``, 4.1.4), vertex normals (4.2.1),
+    mesh resolution and geodesic distances. ``foreground [H, W] bool`` (optional) limits
+    the body to foreground pixels."""
+    d, win, rows, cols, roi = dk.crop_window(depth, box, config.window, config.box_margin)
+    d = dk.fill_holes(d, roi)
+    valid = d > 0
+    if foreground is not None:
+        fg = jnp.asarray(foreground, bool)
+        fg = jnp.take(fg, jnp.clip(rows, 0, fg.shape[0] - 1), axis=0)
+        fg = jnp.take(fg, jnp.clip(cols, 0, fg.shape[1] - 1), axis=1)
+        valid = valid & fg
+    # Neighbours are `scale` frame pixels apart, and a frame pixel spans z / f mm.
+    tscale = win.scale
+    if config.threshold_depth_mm is not None:
+        tscale = tscale * d / config.threshold_depth_mm
+    pts = dk.back_project(d, rows, cols, config.intrinsics)
+    if config.floor_max_tilt_deg is not None:
+        valid = _without_floor(config, pts, valid, tscale)
+    body = _segment(config, d, roi, valid, tscale)
+    w = gk.surface_graph(pts, body, config.surface_max_dist_mm * tscale)
+    normals, nvalid = dk.vertex_normals(pts, w, config.normal_smoothing)
+    mres = gk.mesh_resolution(w)
+    ref_pix = _reference_pixels(config, body)
+    geo, sweeps = _geodesics(config, w, body, ref_pix)
+    return BodyModel(
+        win, rows, cols, d, body, pts, normals, body & nvalid, w, mres, ref_pix, geo, sweeps
+    )
+
+
+def window_pixels(bm: BodyModel, xy: Array, shape: tuple[int, int]) -> tuple[Array, Array]:
+    """Frame positions ``[..., 2]`` -> window pixels ``[..., 2] int32 (row, col)`` and whether
+    each lies inside the window."""
+    ji = dk.frame_to_window(bm.window, xy)
+    col = jnp.floor(ji[..., 0]).astype(jnp.int32)
+    row = jnp.floor(ji[..., 1]).astype(jnp.int32)
+    inside = (row >= 0) & (row < shape[0]) & (col >= 0) & (col < shape[1])
+    rc = jnp.stack([jnp.clip(row, 0, shape[0] - 1), jnp.clip(col, 0, shape[1] - 1)], -1)
+    return rc, inside
+
+
+def pixel_centre(bm: BodyModel, rc: Array) -> Array:
+    """Window pixels ``[..., 2] (row, col)`` -> frame positions ``(x, y)`` of their centres."""
+    ji = jnp.stack([rc[..., 1], rc[..., 0]], -1).astype(jnp.float32) + 0.5
+    return dk.window_to_frame(bm.window, ji)
+
+
+def point_3d(config: PointConfig, bm: BodyModel, xy: Array, offset: Array) -> Array:
+    """3D points ``[P, 3]`` (mm) under frame positions ``xy [P, 2]``, pushed ``offset`` mm
+    further along the viewing ray (a tracked point is on the surface, a joint behind it).
+    The depth is the body's under ``xy`` (the nearest body pixel's off the body); the ray
+    goes through the estimate's own sub-pixel position; NaN without a body."""
+    rc, inside = window_pixels(bm, xy, config.window)
+    on = inside & bm.body[rc[..., 0], rc[..., 1]]
+    ji = dk.frame_to_window(bm.window, xy)
+    near, found = dk.nearest_true(bm.body, jnp.stack([ji[..., 1], ji[..., 0]], -1))
+    rc = jnp.where(on[..., None], rc, near)
+    z = bm.depth[rc[..., 0], rc[..., 1]]
+    fx, fy, cx, cy = config.intrinsics
+    u = xy[..., 0] - 0.5
+    v = xy[..., 1] - 0.5
+    ray = jnp.stack([(u - cx) / fx, (v - cy) / fy, jnp.ones_like(u)], -1)
+    p = z[..., None] * ray
+    p = p + offset[..., None] * ray / jnp.linalg.norm(ray, axis=-1, keepdims=True)
+    return jnp.where((found & (z > 0))[..., None], p, jnp.nan)
+
+
+def body_extremities(config: PointConfig, bm: BodyModel) -> tuple[Array, Array]:
+    """Points to start tracking on a segmented body: ``AUTO_POINTS`` as frame positions
+    ``[5, 2]`` (box convention) and the geodesic reach ``[4]`` mm of the hands and feet.
+
+    The head is the centre of the head above the neck (thesis 4.1.3); hands and feet are
+    the four geodesic extremities of the surface graph seen from the centroid and the head
+    (``kernels.graph.farthest_points``), the two lowest in the image the feet; "a" is the
+    one further left. Meant for a person facing the camera with the limbs apart from the
+    trunk (the thesis's initial pose): side-on, a hidden hand is not an extremity and an
+    elbow or a knee takes its place. With an empty body every point is the window's
+    corner and every reach 0.
+    """
+    body = bm.body
+    head = dk.head_neck_split(body).head_centre
+    src, _ = dk.nearest_true(body, jnp.stack([head, body_centroid(body)]))  # [2, 2]
+    sources = jnp.zeros(body.shape, bool).at[src[:, 0], src[:, 1]].set(True) & body
+    ext, reach = gk.farthest_points(bm.weights, sources, 4, config.max_sweeps)
+    xy = pixel_centre(bm, jnp.concatenate([src[:1], ext]))  # [5, 2]
+    limbs = xy[1:]
+    low = jnp.argsort(limbs[:, 1])  # ascending image y: hands first, then feet
+    hands, feet = low[:2], low[2:]
+    hands = hands[jnp.argsort(limbs[hands, 0])]
+    feet = feet[jnp.argsort(limbs[feet, 0])]
+    order = jnp.concatenate([hands, feet])
+    return jnp.concatenate([xy[:1], limbs[order]]), reach[order]

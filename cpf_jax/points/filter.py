@@ -1,0 +1,353 @@
+"""Layer 2: a batched particle filter for points on the body (thesis ch. 4, SPEC C3).
+
+``P`` points (head, hands, feet, ...) are tracked together: every array has a leading
+``[P, N]`` (points x particles) shape and one jitted step serves all. A particle is
+``(x, y, x', y')`` in depth-frame pixels (thesis 4.2.3, box convention). One ``step``::
+
+    segment    the body in the window around the frame's box        (body.py)
+    predict    x' <- decay x' + n_v, x <- x + x' + n_x, after moving with the box
+    weigh      spin-image similarity C / temperature (eq. 4.7), and/or the geodesic
+               deviation -(g - g0)^2 / (2 geo_sigma^2) from the reference point (4.3),
+               combined as a product (thesis 6.2), plus a depth-consistency term; off the
+               body: no weight (masked, thesis 4.4)
+    recover    a point whose particles are all off the body is re-drawn around the body
+               pixel nearest its last estimate
+    estimate   best particle (thesis Alg. 2-3) and weighted mean, in 2D and 3D
+    resample   per point, when ESS < ess_threshold * N
+
+With ``follow_box`` a particle first moves by the similarity that takes the previous box
+onto the current one (layer 1's output), so that its velocity models motion on the body
+only. The depth-consistency term ``-(z - z_pred)^2 / (2 depth_sigma^2)`` (``z`` the
+surface depth under the particle, ``z_pred`` the last estimate's scaled by the box-height
+ratio) keeps a hand's cloud from sliding onto the thigh behind it.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from cpf_jax.filter import Context, Filter, memoised_build
+from cpf_jax.kernels import depth as dk
+from cpf_jax.kernels import resample as rs
+from cpf_jax.kernels import spin as sk
+from cpf_jax.params import P, props, values
+from cpf_jax.points.body import BodyModel, body_model, pixel_centre, point_3d, window_pixels
+from cpf_jax.points.config import PointConfig
+
+__all__ = [
+    "PointMotionParams",
+    "PointWeightParams",
+    "PointEstimateParams",
+    "PointParams",
+    "POINTS",
+    "POINT_PROPS",
+    "default_point_params",
+    "PointFrame",
+    "PointState",
+    "PointInfo",
+    "point_init",
+    "point_step",
+    "build_point_filter",
+]
+
+
+class PointMotionParams(NamedTuple):
+    pos_noise: Array  # px, std of the position noise n_x
+    vel_noise: Array  # px/frame, std of the velocity noise n_v
+    velocity_decay: Array  # in [0, 1]; 1 = constant velocity, 0 = random walk
+    recovery_spread: Array  # px, std of the cloud re-drawn by the recovery
+
+
+class PointWeightParams(NamedTuple):
+    spin_temperature: Array  # log-weight = C / temperature (C spans about 0-3)
+    geo_sigma: Array  # mm, width of the geodesic-deviation likelihood
+    depth_sigma: Array  # mm, width of the depth-consistency likelihood
+
+
+class PointEstimateParams(NamedTuple):
+    joint_depth_offset: Array  # mm added along the viewing ray to the 3D estimates
+
+
+class PointParams(NamedTuple):
+    """Continuous parameters of the point filter: scalars, or ``[P]`` per point."""
+
+    motion: PointMotionParams
+    weights: PointWeightParams
+    estimate: PointEstimateParams
+
+
+POINTS = PointParams(
+    motion=PointMotionParams(
+        pos_noise=P(2.0, "softplus"),
+        vel_noise=P(1.0, "softplus"),
+        velocity_decay=P(0.5, "sigmoid"),
+        recovery_spread=P(2.0, "softplus"),
+    ),
+    weights=PointWeightParams(
+        spin_temperature=P(0.1, "softplus"),
+        geo_sigma=P(40.0, "softplus"),
+        depth_sigma=P(40.0, "softplus"),
+    ),
+    estimate=PointEstimateParams(joint_depth_offset=P(0.0)),
+)
+POINT_PROPS = props(POINTS)
+
+
+def default_point_params() -> PointParams:
+    """The point filter's default parameters (float32 arrays)."""
+    return values(POINTS)
+
+
+class PointFrame(NamedTuple):
+    """One frame for the point filter: ``depth [H, W] uint16`` mm (0 = missing), layer 1's
+    ``box [4]`` xywh, and optionally ``foreground [H, W] bool`` (only foreground pixels
+    can be the body)."""
+
+    depth: Array
+    box: Array
+    foreground: Array | None = None
+
+
+class PointState(NamedTuple):
+    particles: Array  # [P, N, 4] (x, y, vx, vy), frame px
+    log_weights: Array  # [P, N] normalised
+    ref_spin: Array  # [P, W, W] reference spin images
+    ref_geodesic: Array  # [P, R] mm, initial geodesic distances from the references
+    box: Array  # [4] box of the last frame
+    estimate: Array  # [P, 2] weighted-mean estimate of the last frame
+    depth: Array  # [P] mm, surface depth under the last estimate
+
+
+class PointInfo(NamedTuple):
+    mean: Array  # [P, 2] weighted-mean estimate (frame px, box convention)
+    best: Array  # [P, 2] best particle
+    mean3d: Array  # [P, 3] mm
+    best3d: Array  # [P, 3] mm
+    ess: Array  # [P] before resampling
+    on_body: Array  # [P] fraction of particles on the body
+    recovered: Array  # [P] bool, the all-off-body recovery ran
+    resampled: Array  # [P] bool
+    body_pixels: Array  # [] window pixels on the body
+    mesh_resolution: Array  # [] mm
+    sweeps: Array  # [] geodesic relaxation sweeps
+    spin_complete: Array  # [P] fraction of spin supports that fit their patch
+
+
+def _per_point(x: Array, p: int) -> Array:
+    """A parameter as a ``[P, 1]`` column (scalars broadcast)."""
+    return jnp.broadcast_to(jnp.asarray(x, jnp.float32), (p,))[:, None]
+
+
+def _spin_images(config: PointConfig, bm: BodyModel, rc: Array):
+    """Spin images (thesis 4.2, App. G) at window pixels ``rc [..., 2]``, bins of
+    ``spin_bin_factor`` mesh resolutions."""
+    bin_size = config.spin_bin_factor * bm.mesh_resolution
+    return sk.spin_images(
+        bm.points,
+        bm.normals,
+        bm.spin_valid,
+        rc,
+        jnp.maximum(bin_size, 1e-3),
+        width=config.spin_width,
+        support_angle_deg=config.support_angle_deg,
+        patch_radius=config.patch_radius,
+        batch_size=config.spin_batch,
+    )
+
+
+def _box_transform(old: Array, new: Array, xy: Array) -> Array:
+    """Positions moved by the similarity taking box ``old`` onto box ``new`` (scale: the
+    height ratio)."""
+    oc = old[:2] + old[2:] / 2
+    nc = new[:2] + new[2:] / 2
+    s = jnp.where(old[3] > 0, new[3] / jnp.where(old[3] > 0, old[3], 1.0), 1.0)
+    s = jnp.where((new[3] > 0) & (old[3] > 0), s, 1.0)
+    return nc + (xy - oc) * s
+
+
+def point_init(
+    config: PointConfig,
+    params: PointParams,
+    key: Array,
+    frame: PointFrame,
+    box: Array,
+    context: Context | None = None,
+) -> PointState:
+    """Reference spin images and geodesic distances at ``context.points [P, 2]`` (moved to
+    the nearest body pixel with a normal when off the body), and a cloud around each."""
+    if context is None or context.points is None:
+        raise ValueError("the point filter needs the points to track: Context(points=[P, 2])")
+    points = jnp.asarray(context.points, jnp.float32)
+    p = points.shape[0]
+    bm = body_model(config, frame.depth, box, frame.foreground)
+    rc, inside = window_pixels(bm, points, config.window)
+    on = inside & bm.body[rc[:, 0], rc[:, 1]]
+    on = on & bm.spin_valid[rc[:, 0], rc[:, 1]]
+    ji = dk.frame_to_window(bm.window, points)
+    near, _ = dk.nearest_true(bm.spin_valid, jnp.stack([ji[:, 1], ji[:, 0]], -1))
+    rc = jnp.where(on[:, None], rc, near)
+    start = jnp.where(on[:, None], points, pixel_centre(bm, rc))
+    ref_spin, _ = _spin_images(config, bm, rc)
+    n = config.n_particles
+    noise = jax.random.normal(key, (p, n, 2)) * _per_point(params.motion.pos_noise, p)[..., None]
+    xy = start[:, None, :] + noise
+    return PointState(
+        particles=jnp.concatenate([xy, jnp.zeros((p, n, 2), jnp.float32)], -1),
+        log_weights=jnp.full((p, n), -jnp.log(jnp.float32(n))),
+        ref_spin=ref_spin,
+        ref_geodesic=bm.geodesic[:, rc[:, 0], rc[:, 1]].T,  # [P, R]
+        box=jnp.asarray(box, jnp.float32),
+        estimate=start,
+        depth=bm.depth[rc[:, 0], rc[:, 1]],
+    )
+
+
+def _predict(
+    config: PointConfig, params: PointParams, keys, state: PointState, box: Array
+) -> tuple[Array, Array, Array, Array]:
+    """``(xy, velocity, previous estimate, predicted depth)`` after following the box and
+    the constant-velocity model with decay."""
+    k_pos, k_vel = keys
+    p = state.particles.shape[0]
+    m = params.motion
+    xy, vel = state.particles[..., :2], state.particles[..., 2:]
+    prev_est, z_pred = state.estimate, state.depth
+    if config.follow_box:
+        xy = _box_transform(state.box, box, xy)
+        prev_est = _box_transform(state.box, box, prev_est)
+        # The box height is inversely proportional to the person's depth.
+        ok = (state.box[3] > 0) & (box[3] > 0)
+        z_pred = jnp.where(ok, z_pred * state.box[3] / jnp.where(ok, box[3], 1.0), z_pred)
+    vel = _per_point(m.velocity_decay, p)[..., None] * vel
+    vel = vel + jax.random.normal(k_vel, vel.shape) * _per_point(m.vel_noise, p)[..., None]
+    xy = xy + vel + jax.random.normal(k_pos, xy.shape) * _per_point(m.pos_noise, p)[..., None]
+    return xy, vel, prev_est, z_pred
+
+
+def _weigh(
+    config: PointConfig,
+    params: PointWeightParams,
+    bm: BodyModel,
+    state: PointState,
+    xy: Array,
+    z_pred: Array,
+) -> tuple[Array, Array, Array]:
+    """``(log-weights [P, N], on body [P, N], spin completeness [P])`` (module docstring);
+    ``lambda`` of eq. 4.7 is half the median overlap over a point's particles on the body."""
+    p, n = xy.shape[:2]
+    rc, inside = window_pixels(bm, xy, config.window)
+    on = inside & bm.body[rc[..., 0], rc[..., 1]]
+    lw = jnp.zeros((p, n), jnp.float32)
+    complete = jnp.ones((p,), jnp.float32)
+    if config.uses_spin:
+        imgs, comp = _spin_images(config, bm, rc)  # [P, N, W, W]
+        ov = sk.overlap_count(imgs, state.ref_spin[:, None])
+        ov_on = jnp.where(on, ov.astype(jnp.float32), jnp.nan)
+        lam = jnp.nan_to_num(0.5 * jnp.nanmedian(ov_on, axis=1))
+        c = sk.spin_similarity(imgs, state.ref_spin[:, None], lam[:, None])
+        lw = lw + c / _per_point(params.spin_temperature, p)
+        complete = jnp.sum(comp & on, 1) / jnp.maximum(jnp.sum(on, 1), 1)
+    if config.uses_geodesic:
+        g = jnp.moveaxis(bm.geodesic[:, rc[..., 0], rc[..., 1]], 0, -1)  # [P, N, R]
+        dev = (g - state.ref_geodesic[:, None, :]) / _per_point(params.geo_sigma, p)[..., None]
+        reach = jnp.all(jnp.isfinite(g), -1)
+        lw = lw + jnp.where(reach, -0.5 * jnp.sum(dev * dev, -1), -jnp.inf)
+    if config.depth_consistency:
+        z = bm.depth[rc[..., 0], rc[..., 1]]
+        dz = (z - z_pred[:, None]) / _per_point(params.depth_sigma, p)
+        lw = lw + jnp.where(z_pred[:, None] > 0, -0.5 * dz * dz, 0.0)
+    lw = jnp.where(on, lw, -jnp.inf)
+    return jnp.where(jnp.isnan(lw), -jnp.inf, lw), on, complete
+
+
+def _recover(
+    params: PointMotionParams,
+    key: Array,
+    bm: BodyModel,
+    prev_est: Array,
+    xy: Array,
+    vel: Array,
+    lw: Array,
+) -> tuple[Array, Array, Array, Array]:
+    """Re-draw, with uniform weights and no velocity, the points whose every particle is
+    off the body, around the body pixel nearest their last estimate (kept as predicted
+    when the body is empty); returns ``(xy, vel, lw, recovered [P])``."""
+    p = xy.shape[0]
+    lost = jax.vmap(rs.all_weights_invalid)(lw)
+    ji = dk.frame_to_window(bm.window, prev_est)
+    near, found = dk.nearest_true(bm.spin_valid, jnp.stack([ji[:, 1], ji[:, 0]], -1))
+    anchor = pixel_centre(bm, near)
+    spread = _per_point(params.recovery_spread, p)[..., None]
+    redraw = anchor[:, None, :] + jax.random.normal(key, xy.shape) * spread
+    recovered = lost & found
+    xy = jnp.where(recovered[:, None, None], redraw, xy)
+    vel = jnp.where(recovered[:, None, None], 0.0, vel)
+    lw = jnp.where(recovered[:, None], 0.0, lw)
+    return xy, vel, lw, recovered
+
+
+def point_step(
+    config: PointConfig, params: PointParams, key: Array, state: PointState, frame: PointFrame
+) -> tuple[PointState, PointInfo]:
+    """One frame: segment, predict, weigh, recover, estimate, resample."""
+    p = state.particles.shape[0]
+    k_pos, k_vel, k_rec, k_res = jax.random.split(key, 4)
+    box = jnp.asarray(frame.box, jnp.float32)
+    bm = body_model(config, frame.depth, box, frame.foreground)
+    xy, vel, prev_est, z_pred = _predict(config, params, (k_pos, k_vel), state, box)
+    lw, on, complete = _weigh(config, params.weights, bm, state, xy, z_pred)
+    xy, vel, lw, recovered = _recover(params.motion, k_rec, bm, prev_est, xy, vel, lw)
+    lw = jax.vmap(rs.normalise_log_weights)(lw)
+    ess = jax.vmap(rs.effective_sample_size)(lw)
+    wts = jnp.exp(lw)
+    mean = jnp.sum(wts[..., None] * xy, axis=1)
+    best = jnp.take_along_axis(xy, jnp.argmax(lw, axis=1)[:, None, None], axis=1)[:, 0]
+    off = _per_point(params.estimate.joint_depth_offset, p)[:, 0]
+    surface = point_3d(config, bm, mean, jnp.zeros_like(off))[:, 2]
+    threshold = jnp.where(recovered, 0.0, config.ess_threshold)  # a fresh cloud is uniform
+    scheme = rs.SCHEMES[config.resampler]
+    particles, lw, resampled = jax.vmap(
+        lambda k, w, x, t: rs.resample_if(k, w, x, t, scheme)
+    )(jax.random.split(k_res, p), lw, jnp.concatenate([xy, vel], -1), threshold)
+    new_state = PointState(
+        particles,
+        lw,
+        state.ref_spin,
+        state.ref_geodesic,
+        box,
+        mean,
+        jnp.where(jnp.isfinite(surface), surface, z_pred),
+    )
+    info = PointInfo(
+        mean=mean,
+        best=best,
+        mean3d=point_3d(config, bm, mean, off),
+        best3d=point_3d(config, bm, best, off),
+        ess=ess,
+        on_body=jnp.mean(on, axis=1),
+        recovered=recovered,
+        resampled=resampled,
+        body_pixels=jnp.sum(bm.body),
+        mesh_resolution=bm.mesh_resolution,
+        sweeps=bm.sweeps,
+        spin_complete=complete,
+    )
+    return new_state, info
+
+
+@memoised_build
+def build_point_filter(config: PointConfig) -> Filter:
+    """The point filter's ``Filter(init, step)``; ``init`` reads ``context.points`` (``P``
+    is their number), ``step`` takes a ``PointFrame``."""
+
+    def init(params, key, frame, box, context=None):
+        return point_init(config, params, key, frame, box, context)
+
+    def step(params, key, state, frame):
+        return point_step(config, params, key, state, frame)
+
+    return Filter(init, step)

@@ -1,0 +1,103 @@
+"""The box the RGB-D filter reports (``info.box``, what metrics score).
+
+``report="pixels"`` (default): the tight box of the target's pixels (foreground within
+the target gate of the depth templates) in and around the estimate, keeping only the main
+run of columns and of rows (lines at most ``report.gap`` times the estimate's size apart):
+stray foreground at the target's depth among the furniture must not stretch it.
+``"cells"`` (grid-occlusion): the union of the cells voted visible. ``"box"``: the
+estimate. ``grid-occlusion`` reports no box (``info.lost``) when every cell is voted
+occluded or the target's pixels cover less than ``target.min_coverage`` of the estimate,
+as CLEAR-MOT asks of a tracker whose target is hidden.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from cpf_jax.kernels.cells import grid_cells
+from cpf_jax.rgbd.config import RGBDConfig
+from cpf_jax.rgbd.observe import Observation
+from cpf_jax.rgbd.params import ReportParams
+from cpf_jax.rgbd.proposal import target_pixels
+
+__all__ = ["Extent", "kept_lines", "main_run", "target_extent", "reported_box"]
+
+
+class Extent(NamedTuple):
+    box: Array  # [4] xywh tight box of the target's pixels (the estimate when none)
+    coverage: Array  # target pixels found / the estimate's area (about 0 when hidden)
+    held: Array  # the same with the gate of fresh templates (the target is where expected)
+
+
+def kept_lines(counts: Array, min_pixels: Array) -> Array:
+    """``counts [L]`` target pixels per column (row) -> ``[L]`` bool: the line has one and
+    the line with its two neighbours holds ``min_pixels`` (isolated noise drops out, a
+    1 px wide limb at an occluder's edge stays)."""
+    window = jnp.convolve(counts, jnp.ones((3,), counts.dtype), mode="same")
+    return (counts > 0) & (window >= min_pixels)
+
+
+def main_run(counts: Array, kept: Array, gap: Array) -> Array:
+    """``[L]`` bool: the kept lines of the run holding the most target pixels, kept lines at
+    most ``gap`` apart forming one run (an arm or a leg a few lines off stays in it)."""
+    idx = jnp.arange(counts.shape[0], dtype=jnp.float32)
+    last = jax.lax.cummax(jnp.where(kept, idx, -jnp.inf))
+    prev = jnp.concatenate([jnp.full((1,), -jnp.inf), last[:-1]])  # last kept line before
+    start = kept & (idx - prev > gap)
+    run = jnp.cumsum(start.astype(jnp.int32)) - 1  # run index of every line (-1: none yet)
+    run = jnp.where(kept, run, counts.shape[0])  # not kept: an unused segment
+    totals = jax.ops.segment_sum(counts, run, num_segments=counts.shape[0] + 1)
+    return kept & (run == jnp.argmax(totals[:-1]))
+
+
+def target_extent(
+    params, state, obs: Observation, depth: Array, est: Array
+) -> Extent:
+    """The target's pixels in the estimate ``[4]`` grown by ``report.margin`` per side:
+    their tight box (main runs of lines with ``report.min_pixels``), coverage and held
+    coverage (``Extent``). Pixels without depth are left out: at depth edges and on dark
+    hair they cannot be told from an occluder's."""
+    rp: ReportParams = params.report
+    height, width = depth.shape
+    like, tight = target_pixels(params, state, obs, depth)
+    m = rp.margin
+    x0 = est[0] - m * est[2]
+    y0 = est[1] - m * est[3]
+    x1 = est[0] + est[2] * (1 + m)
+    y1 = est[1] + est[3] * (1 + m)
+    cols = jnp.arange(width, dtype=jnp.float32) + 0.5
+    rows = jnp.arange(height, dtype=jnp.float32) + 0.5
+    inside = ((rows >= y0) & (rows < y1))[:, None] & ((cols >= x0) & (cols < x1))[None]
+    t = (like & inside).astype(jnp.float32)
+    held = jnp.sum(t * tight) / jnp.maximum(est[2] * est[3], 1.0)
+    col_count, row_count = jnp.sum(t, axis=0), jnp.sum(t, axis=1)
+    col_n = main_run(col_count, kept_lines(col_count, rp.min_pixels), rp.gap * est[2])
+    row_n = main_run(row_count, kept_lines(row_count, rp.min_pixels), rp.gap * est[3])
+    ok = jnp.any(col_n) & jnp.any(row_n)
+    coverage = jnp.sum(t) / jnp.maximum(est[2] * est[3], 1.0)
+    big = jnp.float32(1e9)
+    bx0 = jnp.min(jnp.where(col_n, cols - 0.5, big))
+    bx1 = jnp.max(jnp.where(col_n, cols + 0.5, -big))
+    by0 = jnp.min(jnp.where(row_n, rows - 0.5, big))
+    by1 = jnp.max(jnp.where(row_n, rows + 0.5, -big))
+    box = jnp.where(ok, jnp.stack([bx0, by0, bx1 - bx0, by1 - by0]), est)
+    return Extent(box, coverage, held)
+
+
+def reported_box(config: RGBDConfig, est: Array, extent: Extent, voted: Array) -> Array:
+    """``info.box`` of ``config.report`` from the estimate, the target's extent and the
+    cells voted occluded ``[C]``."""
+    if config.report == "pixels":
+        return extent.box
+    if config.occlusion and config.report == "cells":
+        cells = grid_cells(est, config.k)  # [C, 4]
+        x0 = jnp.min(jnp.where(voted, jnp.inf, cells[:, 0]))
+        y0 = jnp.min(jnp.where(voted, jnp.inf, cells[:, 1]))
+        x1 = jnp.max(jnp.where(voted, -jnp.inf, cells[:, 0] + cells[:, 2]))
+        y1 = jnp.max(jnp.where(voted, -jnp.inf, cells[:, 1] + cells[:, 3]))
+        return jnp.where(jnp.all(voted), est, jnp.stack([x0, y0, x1 - x0, y1 - y0]))
+    return est
