@@ -49,7 +49,6 @@ from cpf_jax.points import (
     default_point_params,
 )
 from cpf_jax.rgbd import RGBDConfig, RGBDParams, build_rgbd_filter, default_rgbd_params
-from cpf_jax.rgbd.observe import as_background
 from cpf_jax.types import Frame
 
 __all__ = [
@@ -76,7 +75,9 @@ def build_box_filter(config: ColourConfig | RGBDConfig) -> Filter:
         return build_colour_filter(config)
     if isinstance(config, RGBDConfig):
         return build_rgbd_filter(config)
-    raise TypeError(f"a box filter needs a ColourConfig or an RGBDConfig, got {type(config).__name__}")
+    raise TypeError(
+        f"a box filter needs a ColourConfig or an RGBDConfig, got {type(config).__name__}"
+    )
 
 
 def default_box_params(config: ColourConfig | RGBDConfig) -> ColourParams | RGBDParams:
@@ -142,6 +143,7 @@ class CascadeInfo(NamedTuple):
     ess: Array
     log_evidence: Array
     estimate: Array  # [4] xywh, layer 1's estimate
+    windowed: Array
     layer1: Any  # layer 1's whole info
     points: PointInfo  # layer 2
     box_used: Array  # [4] xywh, the box layer 2 worked in
@@ -240,7 +242,8 @@ def build_cascade(config: CascadeConfig) -> Filter:
         box = jnp.where(i1.lost, state.points.box, new_box)
         bg2 = _layer2_background(config, state, s1)
         s2, i2 = layer2.step(params.points, k2, state.points, _point_frame(config, frame, box, bg2))
-        info = CascadeInfo(i1.box, i1.lost, i1.ess, i1.log_evidence, i1.estimate, i1, i2, box)
+        common = (i1.box, i1.lost, i1.ess, i1.log_evidence, i1.estimate, i1.windowed)
+        info = CascadeInfo(*common, i1, i2, box)
         return CascadeState(s1, s2, state.background), info
 
     return Filter(init, step)

@@ -14,8 +14,8 @@ a ``PointFrame`` for the point filter), ``box`` the initial ``(x, y, w, h)`` box
 
 Every box filter's state holds its particle cloud as ``state.cloud`` (:class:`Cloud`),
 and every box filter's info starts with the fields of ``BOX_INFO_FIELDS``: ``box`` (the
-box to score, ``[4]`` xywh), ``lost``, ``ess``, ``log_evidence`` and ``estimate``, then
-its own extras.
+box to score, ``[4]`` xywh), ``lost``, ``ess``, ``log_evidence``, ``estimate`` and
+``windowed``, then its own extras.
 The command line, the Rerun logger, the tuner and the batch runner read only these.
 """
 
@@ -47,9 +47,11 @@ __all__ = [
 
 #: The fields every box filter's info starts with, in this order: the box to score
 #: ``[4]`` xywh, whether the target is lost (no box to score), the effective sample size
-#: before resampling, the log mean likelihood of the propagated particles, and the state
-#: estimate as a box (the weighted mean; the RGB-D filter's whole-body box).
-BOX_INFO_FIELDS = ("box", "lost", "ess", "log_evidence", "estimate")
+#: before resampling, the log mean likelihood of the propagated particles, the state
+#: estimate as a box (the weighted mean; the RGB-D filter's whole-body box), and whether
+#: the particles' histograms came from the static window (False: the exact whole-frame
+#: path ran, which is slower).
+BOX_INFO_FIELDS = ("box", "lost", "ess", "log_evidence", "estimate", "windowed")
 
 
 class Filter(NamedTuple):

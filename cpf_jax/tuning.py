@@ -3,7 +3,7 @@
 Usage::
 
     from cpf_jax import tuning
-    from cpf_jax.colour import COLOUR_PROPS, ColourConfig, build_colour_filter, default_colour_params
+    from cpf_jax.colour import COLOUR_PROPS, build_colour_filter, default_colour_params
 
     data = tuning.stack_sequences([make_sequence("walk_across_medium", seed=s, n_frames=60)
                                    for s in (100, 101, 102)])
@@ -201,6 +201,28 @@ def unconstrained(params: NamedTuple, props: NamedTuple, names: Sequence[str]) -
     return free
 
 
+def _guarded_update(optimizer: optax.GradientTransformation, loss: Callable) -> Callable:
+    """A jitted optimiser step on ``loss(free, params, key, data)`` that keeps the last
+    values (and optimiser state) when the loss or a gradient is not finite. The parameters
+    and data are arguments, not closed-over constants: XLA would otherwise embed every
+    frame in the compiled program."""
+
+    @jax.jit
+    def update(free, opt_state, key, params, data):
+        value, grads = jax.value_and_grad(loss)(free, params, key, data)
+        leaves = jax.tree_util.tree_leaves(grads)
+        ok = jnp.isfinite(value) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(g)) for g in leaves]))
+        updates, new_opt = optimizer.update(grads, opt_state, free)
+        new_free = optax.apply_updates(free, updates)
+
+        def keep(new, old):
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, old)
+
+        return keep(new_free, free), keep(new_opt, opt_state), value, ~ok
+
+    return update
+
+
 def tune(
     run: Callable,
     params: NamedTuple,
@@ -258,19 +280,7 @@ def tune(
     free = jax.tree_util.tree_map(jnp.divide, free, scales)
     opt_state = optimizer.init(free)
 
-    # params and data are arguments, not closed-over constants: XLA would otherwise
-    # embed every frame in the compiled program.
-    @jax.jit
-    def update(free, opt_state, key, params, data):
-        value, grads = jax.value_and_grad(scaled_loss)(free, params, key, data)
-        leaves = jax.tree_util.tree_leaves(grads)
-        ok = jnp.isfinite(value) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(g)) for g in leaves]))
-        updates, new_opt = optimizer.update(grads, opt_state, free)
-        new_free = optax.apply_updates(free, updates)
-        keep = lambda new, old: jax.tree_util.tree_map(  # noqa: E731
-            lambda a, b: jnp.where(ok, a, b), new, old
-        )
-        return keep(new_free, free), keep(new_opt, opt_state), value, ~ok
+    update = _guarded_update(optimizer, scaled_loss)
 
     if validation is not None:
         val_key = jax.random.fold_in(key, 1)
@@ -283,14 +293,9 @@ def tune(
         key, k = jax.random.split(key)
         free, opt_state, value, skipped = update(free, opt_state, k, params, data)
         tuned = pp.constrain(unscale(free), params, props)
-        entry = {
-            "step": step,
-            "loss": float(value),
-            "skipped": bool(skipped),
-            "seconds": time.perf_counter() - t0,
-        }
-        for n in names:
-            entry[n] = np.asarray(pp.get(tuned, n)).tolist()
+        entry = {"step": step, "loss": float(value), "skipped": bool(skipped)}
+        entry["seconds"] = time.perf_counter() - t0
+        entry.update({n: np.asarray(pp.get(tuned, n)).tolist() for n in names})
         if validation is not None and ((step + 1) % validate_every == 0 or step == steps - 1):
             entry["validation"] = float(val_loss(free, params, validation))
             if entry["validation"] < best[0]:

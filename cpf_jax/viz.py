@@ -34,6 +34,7 @@ import numpy as np
 import rerun as rr
 
 from cpf_jax.errors import OutputError, ViewerUnavailable
+from cpf_jax.filter import particle_boxes
 from cpf_jax.types import Frame, Intrinsics
 
 __all__ = ["RerunLogger", "weight_colours", "IMAGE_SPACE", "check_viewer"]
@@ -275,6 +276,11 @@ class RerunLogger:
             f"world/{path.strip('/')}",
             rr.Points3D(pts, labels=labels, colors=colours, radii=radius),
         )
+
+    def log_cloud(self, i: int, state: Any, path: str = "tracker/particles") -> None:
+        """The particles of any box filter's state (``state.cloud``), coloured by weight."""
+        boxes, log_weights = particle_boxes(state)
+        self.log_particles(i, np.asarray(boxes), np.asarray(log_weights), path, log_weights=True)
 
     # -- scalars -----------------------------------------------------------------
     def log_scalar(self, i: int, name: str, value: float) -> None:

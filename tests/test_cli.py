@@ -73,7 +73,7 @@ def test_init_override_and_max_frames(folder, tmp_path):
 
 def test_a_second_run_in_the_process_reuses_the_built_filter(folder, tmp_path):
     """The filter builders return the same ``Filter`` for equal configs
-    (``types.memoised_build``): a second ``main()`` with the same settings (a notebook,
+    (``filter.memoised_build``): a second ``main()`` with the same settings (a notebook,
     a script looping over recordings) jits the same step object, so JAX neither traces
     nor compiles it again, and it tracks the same; other settings build their own."""
     from cpf_jax import colour
@@ -104,15 +104,15 @@ def test_optional_colour_terms_from_the_command_line(folder, tmp_path, monkeypat
     assert np.isfinite(read_results(out)["boxes"]).all()
 
     # --unseen reaches the filter's config (the linear contrast's prior on unseen colours)
-    import cpf_jax.colour as colour
+    import cpf_jax.cascade as cascade
 
-    configs, original = [], colour.build_colour_filter
+    configs, original = [], cascade.build_box_filter
 
     def build(config):
         configs.append(config)
         return original(config)
 
-    monkeypatch.setattr(colour, "build_colour_filter", build)
+    monkeypatch.setattr(cascade, "build_box_filter", build)
     argv = argv[:10] + ["--layout", "6x2", "--layout-mirror", "--unseen", "neutral"]
     assert main(argv) == 0
     assert configs[-1].unseen == "neutral" and configs[-1].layout_mirror
@@ -129,10 +129,13 @@ def test_size_velocity_decay_and_size_hold_from_the_command_line(folder, tmp_pat
     # The option reaches both layers' parameters.
     args = build_parser().parse_args(["x", "--size-velocity-decay", "0.25", "--sigma", "0.3"])
     colour = param_options(args, default_colour_params())
-    assert float(colour.size_velocity_decay) == 0.25 and np.isclose(float(colour.sigma), 0.3)
+    assert float(colour.motion.size_velocity_decay) == 0.25
+    assert np.isclose(float(colour.histogram.sigma), 0.3)
+    args.model = "grid-occlusion"
     rgbd = param_options(args, default_rgbd_params(RGBDConfig()))
-    assert float(rgbd.size_velocity_decay) == 0.25 and np.isclose(float(rgbd.sigma_rgb), 0.3)
-    assert float(default_colour_params().size_velocity_decay) == np.float32(0.9)
+    assert float(rgbd.motion.size_velocity_decay) == 0.25
+    assert np.isclose(float(rgbd.colour.sigma), 0.3)
+    assert float(default_colour_params().motion.size_velocity_decay) == np.float32(0.9)
     args = build_parser().parse_args(["x", "--dynamics", "ar1", "--size-hold", "0.25"])
     assert float(param_options(args, default_colour_params()).motion.size_hold) == 0.25
     assert float(default_colour_params().motion.size_hold) == 1.0
@@ -155,22 +158,22 @@ def test_size_velocity_decay_and_size_hold_from_the_command_line(folder, tmp_pat
 def test_histogram_only_model_from_the_command_line():
     """The default colour model has the layout term, the template update and neutral
     unseen colours; three options give ``ColourConfig.histogram_only()``."""
-    from cpf_jax.cli import _model_options, build_parser
+    from cpf_jax.cli import build_parser, model_options
     from cpf_jax.colour import ColourConfig
 
     default = ColourConfig()
     assert default.layout == (7, 3) and default.template_update
     assert default.unseen == "neutral"
     args = build_parser().parse_args(["x"])
-    config_kw, colour_kw = _model_options(args)
+    config_kw, colour_kw = model_options(args)
     assert ColourConfig(**config_kw, **colour_kw) == default
     argv = ["x", "--layout", "off", "--no-template-update", "--unseen", "background"]
-    config_kw, colour_kw = _model_options(build_parser().parse_args(argv))
+    config_kw, colour_kw = model_options(build_parser().parse_args(argv))
     hist = ColourConfig(**config_kw, **colour_kw)
     assert hist == default.histogram_only() and hist != default
     assert hist.layout is None and not hist.template_update and hist.unseen == "background"
     # --contrast off: no centre-surround term (ColourConfig.contrast = None).
-    config_kw, colour_kw = _model_options(build_parser().parse_args(["x", "--contrast", "off"]))
+    config_kw, colour_kw = model_options(build_parser().parse_args(["x", "--contrast", "off"]))
     assert ColourConfig(**config_kw, **colour_kw).contrast is None
 
 

@@ -10,8 +10,14 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax import Array
 
-from cpf_jax.colour.config import COLOUR_BINS, LAYOUT_FEATURES, UNSEEN, ColourConfig
-from cpf_jax.colour.config import bin_index, n_bins_of
+from cpf_jax.colour.config import (
+    COLOUR_BINS,
+    LAYOUT_FEATURES,
+    UNSEEN,
+    ColourConfig,
+    bin_index,
+    n_bins_of,
+)
 from cpf_jax.kernels import boxes as box_ops
 from cpf_jax.kernels.histogram import (
     box_histograms,

@@ -100,13 +100,13 @@ class ColourInfo(NamedTuple):
     ess: Array  # effective sample size before resampling
     log_evidence: Array  # log mean likelihood of the propagated particles
     estimate: Array  # [4] xywh, the state estimate (``box`` itself for the colour layer)
+    # bool: the histograms came from the static window (False: no window, or the exact
+    # whole-frame fallback ran, which is slower).
+    windowed: Array
     best_distance: Array  # smallest Bhattacharyya distance among the particles
     estimate_distance: Array  # distance of the estimate's box
     resampled: Array  # bool
     weights_invalid: Array  # bool: every log-weight was NaN or -inf
-    # bool: the histograms came from the static window (False: no window, or the exact
-    # whole-frame fallback ran, which is slower).
-    windowed: Array
 
 
 class Observation(NamedTuple):
@@ -302,11 +302,11 @@ def colour_step(
         ess=weighed.ess,
         log_evidence=weighed.log_evidence,
         estimate=est,
+        windowed=uses_window((height, width), rects, config.window, origin),
         best_distance=best_d,
         estimate_distance=est_d,
         resampled=resampled,
         weights_invalid=weighed.invalid,
-        windowed=uses_window((height, width), rects, config.window, origin),
     )
     return new_state, info
 

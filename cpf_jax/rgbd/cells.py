@@ -117,9 +117,7 @@ def body_log_likelihood(
         total = jnp.sum(pooled, axis=-1)
         d2 = squared_bhattacharyya(pooled, sqrt_t, total)
     # d^2 - ref^2 against sigma: the Gaussian of eq. 3.8 shifted to score 0 at ``ref``.
-    l_body = jnp.maximum(
-        histogram_log_likelihood(d2 - params.ref**2, params.sigma), params.floor
-    )
+    l_body = jnp.maximum(histogram_log_likelihood(d2 - params.ref**2, params.sigma), params.floor)
     return jnp.where(total >= params.min_pixels, l_body, 0.0)
 
 

@@ -182,12 +182,15 @@ def depth_template_update(
     change (the body moves in depth as a whole); then the velocity correction."""
     if not config.template_update:
         return t
-    _, med, total = cell_statistics(config, _gated(params, t, occluded_frames, obs, depth, held), estimate)
+    _, med, total = cell_statistics(
+        config, _gated(params, t, occluded_frames, obs, depth, held), estimate
+    )
     dp = params.depth
     dt = t.depth
     drift = search_drift(params, t, occluded_frames)
     jump = jnp.abs(med - dt) < (
-        occluder_margin(params, dt) + jnp.maximum(jnp.minimum(dp.speed * t.age, dp.max_drift), drift)
+        occluder_margin(params, dt)
+        + jnp.maximum(jnp.minimum(dp.speed * t.age, dp.max_drift), drift)
     )
     d_ok = ok & (total >= config.min_depth_count) & ((dt <= 0) | jump)
     updated = jnp.where(dt > 0, (1.0 - dp.rate) * dt + dp.rate * med, med)

@@ -89,11 +89,11 @@ class RGBDInfo(NamedTuple):
     ess: Array
     log_evidence: Array  # log mean likelihood of the propagated particles
     estimate: Array  # [4] xywh, the weighted mean of the particles (the whole-body box)
+    windowed: Array  # bool: the cells' histograms came from the static window
     vote: Array  # [C] posterior probability that each cell is occluded
     target_occluded: Array  # bool: more than half of the cells voted occluded (or hidden)
     resampled: Array
     weights_invalid: Array
-    windowed: Array  # bool: the cells' histograms came from the static window
 
 
 def rgbd_init(
@@ -249,11 +249,11 @@ def rgbd_step(
         ess=ess,
         log_evidence=log_evidence,
         estimate=est,
+        windowed=terms.windowed,
         vote=vote,
         target_occluded=target_occluded,
         resampled=resampled,
         weights_invalid=invalid,
-        windowed=terms.windowed,
     )
     return new_state, info
 

@@ -297,4 +297,3 @@ def rgbd_props(config: RGBDConfig | None = None) -> RGBDParams:
 def default_rgbd_params(config: RGBDConfig | None = None) -> RGBDParams:
     """The RGB-D filter's default parameters for ``config``'s grid (float32 arrays)."""
     return values(rgbd_spec(config))
-

@@ -304,7 +304,6 @@ def detector_log_density(
     return lp - 2.0 * jnp.log(jnp.float32(s)) - jnp.log(w * step_w) - jnp.log(h * step_h)
 
 
-
 class Proposal(NamedTuple):
     particles: Array  # [N, 8] proposed (and clamped) particles
     flags: Array  # [N] int32 previous flags (0 for re-drawn particles)
@@ -328,7 +327,9 @@ def spread_when_occluded(
         return particles, jnp.float32(1.0), jnp.float32(0.0)
     n = particles.shape[0]
     occ = params.occlusion
-    spread = jnp.minimum(1.0 + occ.spread_rate * occluded_frames.astype(jnp.float32), occ.spread_max)
+    spread = jnp.minimum(
+        1.0 + occ.spread_rate * occluded_frames.astype(jnp.float32), occ.spread_max
+    )
     extra = jnp.sqrt(jnp.maximum(spread**2 - 1.0, 0.0))
     pos_scale = params.motion.tau[:2] * (1.0 if scale is None else scale[:, None])
     particles = particles.at[:, :2].add(extra * pos_scale * jax.random.normal(key, (n, 2)))

@@ -54,9 +54,7 @@ def main_run(counts: Array, kept: Array, gap: Array) -> Array:
     return kept & (run == jnp.argmax(totals[:-1]))
 
 
-def target_extent(
-    params, state, obs: Observation, depth: Array, est: Array
-) -> Extent:
+def target_extent(params, state, obs: Observation, depth: Array, est: Array) -> Extent:
     """The target's pixels in the estimate ``[4]`` grown by ``report.margin`` per side:
     their tight box (main runs of lines with ``report.min_pixels``), coverage and held
     coverage (``Extent``). Pixels without depth are left out: at depth edges and on dark

@@ -1,0 +1,313 @@
+"""``cpf-track``'s inputs: the frame source's frames (registered when a calibration is in
+effect), the first frame to track and its box, and the background model of the scene."""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+from collections.abc import Iterator
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from cpf_jax.cli.options import (
+    AUTO_BACKGROUND_FRAMES,
+    QUIET_STRIDE,
+    UsageError,
+    check_box,
+    parse_background,
+    parse_box,
+    parse_live_background,
+)
+
+__all__ = ["Inputs", "frame_name", "open_inputs", "quiet_background"]
+
+
+class Inputs(NamedTuple):
+    """What the tracking loop starts from."""
+
+    start: int  # the first frame tracked
+    box: np.ndarray  # [4] its box (x, y, w, h)
+    frames: Iterator  # (index, Frame) from ``start`` on
+    first: Any  # the first frame (also the first item of ``frames``)
+    background: Any  # the scene's Background (None without one)
+    calibration: Any  # the depth-to-colour calibration in effect (None: none)
+    note: str | None  # which frames made the background (``--background auto``)
+    n_frames: int | None  # frames to track (None: a live stream)
+
+
+def open_inputs(args: argparse.Namespace, source) -> Inputs:
+    """Calibration, registration, start frame and box, background model, ``--init auto``
+    and ``--max-frames``, for a recording or a live stream."""
+    from cpf_jax.io.base import LiveSource
+
+    live = isinstance(source, LiveSource)
+    calib = _calibration(args, source)
+    auto = args.init is not None and args.init.strip().lower() == "auto"
+    # Depth is read by the RGB-D models, the cascade and --init auto's person finder.
+    uses_depth = args.model != "rgb" or args.points is not None or auto
+    register = _registrar(calib, uses_depth=uses_depth)
+    # A background model: the RGB-D models' foreground, and --init auto's person finder.
+    need_bg = args.model != "rgb" or auto
+    note = None
+    if live:
+        start, box, bg_frames, frames = _open_live(args, source, register, need_bg, auto)
+        n_frames = None
+    else:
+        start, box, bg_frames, frames, note = _open_recording(args, source, register, need_bg, auto)
+        n_frames = len(source) - start
+        n_frames = n_frames if args.max_frames is None else min(n_frames, args.max_frames)
+    scene = _median_background(bg_frames)
+    if auto:
+        box, frames = _find_start(source, frames, scene)
+    frames = itertools.islice(frames, args.max_frames)  # None: to the end
+    try:
+        start, first = next(frames)
+    except StopIteration:
+        raise UsageError(f"{source.describe()}: no frame to track") from None
+    check_box(box, source.size, source.describe())
+    frames = itertools.chain([(start, first)], frames)
+    return Inputs(start, box, frames, first, scene, calib, note, n_frames)
+
+
+def _open_recording(args, source, register, need_bg: bool, auto: bool):
+    """``(start, box, background frames, frames, note)`` of a recording (finite source)."""
+    n_frames = len(source)
+
+    def read(i: int):
+        return register(source.read(i), f"{source.describe()} frame {i} ({source.names[i]})")
+
+    start, box = _start_and_box(args, source, n_frames, auto)
+    bg_frames, note = None, None
+    if need_bg:
+        if args.background == "empty":
+            empty = source.empty_background()
+            if empty is None:
+                raise UsageError(
+                    f"--background empty: {source.describe()} has no empty-scene frame "
+                    "(only synthetic scenarios do); give N or A:B"
+                )
+            bg_frames = [empty]
+        elif args.background == "auto":
+            bg_frames, note = quiet_background(read, parse_background("auto", n_frames))
+        else:
+            bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
+    frames = ((i, read(i)) for i in range(start, n_frames))
+    return start, box, bg_frames, frames, note
+
+
+def _median_background(frames):
+    """The per-pixel median of ``frames`` (``kernels.background.median_background``), or None."""
+    if not frames:
+        return None
+    import jax
+
+    from cpf_jax.kernels.background import median_background
+
+    return jax.jit(median_background)(
+        np.stack([f.colour for f in frames]), np.stack([f.depth for f in frames])
+    )
+
+
+def _start_and_box(
+    args: argparse.Namespace, source, n_frames: int, auto: bool
+) -> tuple[int, np.ndarray | None]:
+    """The first frame to track and its box (None: ``--init auto`` finds it), for a
+    recording (finite source)."""
+    if args.start is not None and not 0 <= args.start < n_frames:
+        raise UsageError(f"--start {args.start} is outside 0..{n_frames - 1}")
+    if auto:
+        return (0 if args.start is None else args.start), None
+    start = source.first_visible if args.init is None else 0
+    if args.start is not None:
+        start = args.start
+    if args.init is not None:
+        return start, parse_box(args.init)
+    if args.start is not None:
+        if source.gt_boxes is not None and (source.visible is None or source.visible[start]):
+            return start, np.asarray(source.gt_boxes[start], np.float32)
+        raise UsageError(
+            f"{source.describe()}: no ground-truth box at frame {start}; give --init x,y,w,h"
+        )
+    box = source.init_box
+    if box is None or start is None:
+        why = "no ground truth to start from"
+        if source.gt_boxes is not None and source.visible is not None and not source.visible.any():
+            # Every line is 0,0,0,0, NaN or of a non-positive size (io.groundtruth).
+            why = "its ground truth shows the target in no frame"
+        raise UsageError(f"{source.describe()}: {why}; give --init x,y,w,h or auto")
+    return start, box
+
+
+def _open_live(args: argparse.Namespace, source, register, need_bg: bool, auto: bool):
+    """``(start, box, background frames, frames)`` of a live stream.
+
+    A camera (or a RealSense recording) is read once, in order: the background frames
+    (``--background N``: the first N frames, or ``A:B``; the scene should be empty
+    then) come before tracking, which starts at ``--start`` (default: the frame after
+    the background, 0 for ``--model rgb``). ``frames`` yields ``(index, frame)`` from
+    there until the stream ends (``--max-frames`` and Ctrl-C are the caller's).
+    ``box`` is None with ``--init auto``.
+    """
+    where = source.describe()
+    if args.init is None:
+        raise UsageError(
+            f"{where}: a live source has no ground truth; give --init x,y,w,h or --init auto"
+        )
+    box = None if auto else parse_box(args.init)
+    bg = parse_live_background(args.background) if need_bg else (0, 0)
+    start = bg[1] if args.start is None else args.start
+    if start < bg[1]:
+        raise UsageError(
+            f"--start {start}: a live stream cannot go back; the background frames "
+            f"{bg[0]}..{bg[1] - 1} come first"
+        )
+    stream = iter(source)
+    bg_frames = []
+    for i in range(start):
+        try:
+            frame = register(next(stream), f"{where} frame {i}")
+        except StopIteration:
+            raise UsageError(
+                f"{where}: the stream ended after {i} frames, before frame {start}"
+            ) from None
+        if bg[0] <= i < bg[1]:
+            bg_frames.append(frame)
+
+    def frames():
+        for i, raw in enumerate(stream, start):
+            yield i, register(raw, f"{where} frame {i}")
+
+    return start, box, bg_frames or None, frames()
+
+
+def _find_start(source, frames, scene):
+    """``(box, frames)`` for ``--init auto``: skip to the first frame in which
+    :func:`cpf_jax.detect.find_person` finds someone; ``frames`` starts there."""
+    from cpf_jax.detect import find_person
+
+    first = None
+    for i, frame in frames:
+        if first is None:
+            first = i
+        box = find_person(frame, scene)
+        if box is not None:
+            x, y, w, h = (int(v) for v in box)
+            print(f"--init auto: a person at {x},{y},{w},{h} in frame {i}", file=sys.stderr)
+            return box, itertools.chain([(i, frame)], frames)
+    where = source.describe()
+    if first is None:
+        raise UsageError(f"--init auto: {where} has no frame to search")
+    raise UsageError(
+        f"--init auto: no person-shaped foreground in frames {first}..{i} of {where} "
+        "(is the background the empty scene?); give --init x,y,w,h"
+    )
+
+
+def quiet_background(read, indices: list[int]) -> tuple[list, str]:
+    """``--background auto``: of the recording frames ``indices`` (``read(i) -> Frame``),
+    those with the least foreground in front of the scene they show, at most
+    ``AUTO_BACKGROUND_FRAMES`` (:func:`cpf_jax.kernels.background.quiet_frames`), and
+    a line naming them for the run's summary. The candidates are kept only on the
+    shares' pixel lattice (every ``QUIET_STRIDE``-th pixel); the chosen frames are read
+    again at full resolution."""
+    import jax
+
+    from cpf_jax.kernels.background import foreground_shares, quiet_frames
+
+    colour, depth = [], []
+    for i in indices:  # one full-resolution frame in memory at a time
+        frame = read(i)
+        colour.append(np.asarray(frame.colour)[::QUIET_STRIDE, ::QUIET_STRIDE].copy())
+        depth.append(np.asarray(frame.depth)[::QUIET_STRIDE, ::QUIET_STRIDE].copy())
+    colour, depth = np.stack(colour), np.stack(depth)
+    share = jax.jit(foreground_shares, static_argnames="stride")(colour, depth, stride=1)
+    n_max = min(AUTO_BACKGROUND_FRAMES, len(indices))
+    picked, count = quiet_frames(share, n_max, min(5, n_max))
+    chosen = [indices[int(i)] for i in np.asarray(picked)[: int(count)]]
+    note = (
+        f"background: median of the {len(chosen)} of {len(indices)} frames with the least "
+        f"foreground ({_ranges(chosen)}; choose with --background)"
+    )
+    return [read(i) for i in chosen], note
+
+
+def _ranges(indices: list[int]) -> str:
+    """``[0, 1, 2, 5, 7, 8]`` -> ``"0-2, 5, 7-8"``."""
+    runs: list[list[int]] = []
+    for i in indices:
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in runs)
+
+
+def frame_name(source, i: int) -> str:
+    names = getattr(source, "names", None)
+    return names[i] if names is not None else f"{source.describe()} frame {i}"
+
+
+def _calibration(args: argparse.Namespace, source):
+    """The calibration in effect: ``--calib``, else the folder's ``calibration.json``.
+
+    A folder's file that is not in the registration format is ignored by the
+    colour model (it reads intrinsics from it) and an error for the RGB-D models.
+    """
+    from cpf_jax.registration import CalibrationError, calibration_from_dict, load_calibration
+
+    if args.calib is not None:
+        return load_calibration(args.calib)
+    if not getattr(source, "calibration", None):
+        return None
+    where = f"{source.path}/calibration.json" if source.path is not None else "calibration"
+    try:
+        return calibration_from_dict(source.calibration, source=where)
+    except CalibrationError:
+        if args.model == "rgb":
+            return None
+        raise
+
+
+def _registrar(calib, uses_depth: bool = True):
+    """``register(frame, name) -> Frame``: depth registered to colour by ``calib`` (one
+    jitted call per frame; the frame unchanged when there is no calibration).
+
+    Without a calibration the depth must already be registered to the colour image: a
+    depth image of another size is one error line naming the frame (``uses_depth``; the
+    colour layer alone never reads depth, so it leaves raw depth alone)."""
+    if calib is None:
+
+        def unregistered(f, name: str):
+            if uses_depth and f.depth.shape != f.colour.shape[:2]:
+                raise UsageError(
+                    f"{name}: depth is {f.depth.shape[1]}x{f.depth.shape[0]} but colour is "
+                    f"{f.colour.shape[1]}x{f.colour.shape[0]}; without a calibration "
+                    "(--calib FILE, or the folder's calibration.json) depth must already be "
+                    "registered to the colour image"
+                )
+            return f
+
+        return unregistered
+    import jax
+
+    from cpf_jax.registration import register_depth
+    from cpf_jax.types import Frame
+
+    register_jit = jax.jit(register_depth, static_argnums=(1,))
+
+    def register(f: Frame, name: str) -> Frame:
+        if f.depth.shape[::-1] != tuple(calib.depth_size):
+            raise UsageError(
+                f"{name}: depth is {f.depth.shape[1]}x{f.depth.shape[0]} but the "
+                f"calibration expects {calib.depth_size[0]}x{calib.depth_size[1]}"
+            )
+        if f.colour.shape[1::-1] != tuple(calib.colour_size):
+            raise UsageError(
+                f"{name}: colour is {f.colour.shape[1]}x{f.colour.shape[0]} but the "
+                f"calibration expects {calib.colour_size[0]}x{calib.colour_size[1]}"
+            )
+        return Frame(f.colour, np.asarray(register_jit(f.depth, calib)))
+
+    return register

@@ -1,0 +1,127 @@
+"""``cpf-track``'s model: the config, parameters, filter and context the command line asks
+for (``--model`` and its options, ``--points`` for the cascade)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from cpf_jax.cli.inputs import Inputs
+from cpf_jax.cli.options import JOINT_DEPTH_OFFSET_MM, UsageError, param_options, parse_points
+from cpf_jax.filter import Context, Filter
+
+__all__ = ["Model", "build_model"]
+
+
+class Model(NamedTuple):
+    """What ``cpf-track`` runs: one filter in the library's one shape, and its inputs."""
+
+    config: Any  # ColourConfig, RGBDConfig or CascadeConfig
+    params: Any
+    filt: Filter
+    context: Context
+    n_particles: int  # of the box filter (layer 1)
+    points: tuple[str, ...]  # names of the body points (empty without --points)
+
+
+def _box_config(args: argparse.Namespace, options: tuple[dict, dict], box, frame_hw):
+    """Layer 1's config and parameters: the colour layer for ``--model rgb``, else the
+    RGB-D filter's variant, with a histogram window sized for the start box."""
+    from cpf_jax.cascade import default_box_params
+    from cpf_jax.colour import ColourConfig
+    from cpf_jax.rgbd import RGBDConfig
+
+    config_kw, colour_kw = options
+    common = dict(
+        n_particles=args.particles,
+        hierarchical=not args.no_hierarchical,
+        resampler=args.resampler,
+        **config_kw,
+    )
+    if args.model == "rgb":
+        config = ColourConfig(estimator=args.estimator, **common, **colour_kw)
+    else:
+        config = RGBDConfig(variant=args.model, body_term=not args.no_body_term, **common)
+    config = config.with_window((float(box[2]), float(box[3])), frame_hw)
+    return config, param_options(args, default_box_params(config))
+
+
+def build_model(args: argparse.Namespace, source, inputs: Inputs, options) -> Model:
+    """The filter ``cpf-track`` runs: layer 1 alone, or the cascade with ``--points``."""
+    from cpf_jax.cascade import build_box_filter
+
+    frame_hw = (source.size[1], source.size[0])
+    config, params = _box_config(args, options, inputs.box, frame_hw)
+    background = None if args.model == "rgb" else inputs.background  # the colour layer has none
+    if args.points is None:
+        context = Context(background=background)
+        return Model(config, params, build_box_filter(config), context, config.n_particles, ())
+    return _cascade(args, source, inputs, config, params, background)
+
+
+def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -> Model:
+    """The cascade of ``--points``: layer 2 on the box of layer 1, its points from
+    ``joints``, ``auto`` or ``x,y;x,y;...``."""
+    import jax.numpy as jnp
+
+    from cpf_jax.cascade import CascadeConfig, build_cascade, check_points, default_cascade_params
+    from cpf_jax.points import PointConfig
+
+    if args.point_particles < 1:
+        raise UsageError(f"--point-particles must be >= 1, got {args.point_particles}")
+    if getattr(source, "has_depth", True) is False or not np.any(inputs.first.depth):
+        raise UsageError(
+            f"--points needs depth: {source.describe()} has none at frame {inputs.start}"
+        )
+    # 3D estimates need the intrinsics of the frames' pixel grid: the colour camera's
+    # after registration, else the source's own (Kinect v2 depth by default).
+    calib = inputs.calibration
+    intrinsics = calib.colour if calib is not None else source.intrinsics
+    point_kw = {} if intrinsics is None else {"intrinsics": intrinsics}
+    foreground = background is not None
+    if foreground:  # the union of the sizeable components inside the foreground
+        point_kw.update(seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05)
+    config = CascadeConfig(
+        box=box_config,
+        points=PointConfig(n_particles=args.point_particles, **point_kw),
+        foreground=foreground,
+    )
+    if args.points == "auto":
+        points, names = _auto_points(config, inputs, background)
+    else:
+        points, names = parse_points(args.points, source, inputs.start)
+        points = check_points(points, (source.size[1], source.size[0]))
+    params = default_cascade_params(config)._replace(box=box_params)
+    if args.points in ("joints", "auto"):  # head, hands, feet: the joints lie behind
+        offset = jnp.asarray(JOINT_DEPTH_OFFSET_MM, jnp.float32)
+        estimate = params.points.estimate._replace(joint_depth_offset=offset)
+        params = params._replace(points=params.points._replace(estimate=estimate))
+    context = Context(background=background, points=jnp.asarray(points, jnp.float32))
+    n = box_config.n_particles
+    return Model(config, params, build_cascade(config), context, n, tuple(names))
+
+
+def _auto_points(config, inputs: Inputs, background):
+    """``--points auto``: head, hands and feet found on the body in the start box
+    (``cpf_jax.cascade.find_body_points``), printed on stderr; one error line when the box
+    holds no body."""
+    import jax
+    import jax.numpy as jnp
+
+    from cpf_jax.cascade import find_body_points
+    from cpf_jax.points import AUTO_POINTS
+
+    xy, reach = jax.jit(find_body_points, static_argnums=0)(
+        config, inputs.first, jnp.asarray(inputs.box, jnp.float32), background
+    )
+    xy, reach = np.asarray(xy), np.asarray(reach)
+    if not np.all(reach > 0):
+        raise UsageError(
+            f"--points auto: no body at the box's depth in frame {inputs.start}; give x,y;x,y;..."
+        )
+    found = "; ".join(f"{n} {x:.0f},{y:.0f}" for n, (x, y) in zip(AUTO_POINTS, xy, strict=True))
+    print(f"--points auto: {found} in frame {inputs.start}", file=sys.stderr)
+    return xy.astype(np.float32), AUTO_POINTS

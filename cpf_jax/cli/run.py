@@ -1,0 +1,197 @@
+"""``cpf-track``'s tracking loop: one jitted ``init``, then one jitted ``step`` per frame, each
+result written as it goes (CSV row, Rerun log). It reads only what every filter's state
+and info share (``cpf_jax.filter``), and the body points when the model has them."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from cpf_jax.cli.inputs import Inputs, frame_name
+from cpf_jax.cli.model import Model
+from cpf_jax.cli.summary import Results, new_results, point_errors, write_plot
+from cpf_jax.errors import CpfJaxError, ViewerUnavailable
+
+__all__ = ["Row", "Sinks", "track"]
+
+
+class Row(NamedTuple):
+    """One tracked frame."""
+
+    box: np.ndarray  # [4] xywh
+    lost: bool
+    ess: float
+    ms: float
+    points2d: np.ndarray  # [P, 2] px (NaN: none)
+    points3d: np.ndarray  # [P, 3] mm (NaN: none)
+    box_used: np.ndarray  # [4] the box layer 2 worked in (the box itself without layer 2)
+
+
+class Sinks:
+    """Where a run's rows go as it goes: the CSV (``--out``) and the Rerun log (``--rrd``,
+    ``--spawn``, ``--connect``)."""
+
+    def __init__(self, args: argparse.Namespace, source, model: Model) -> None:
+        from cpf_jax.io import ResultsWriter
+
+        self.source, self.model, self.writer, self.logger, self.surface = (
+            source,
+            model,
+            None,
+            None,
+            None,
+        )
+        # The logger first: an unreachable viewer fails before any file is written.
+        if args.rrd or args.spawn or args.connect:
+            import jax
+
+            from cpf_jax.viz import RerunLogger
+
+            self.logger = RerunLogger(args.rrd, spawn=args.spawn, connect=args.connect)
+            if model.points:  # layer 2's segmented body, as a 3D point cloud
+                from cpf_jax.cascade import body_surface
+
+                self.surface = jax.jit(body_surface, static_argnums=0)
+        columns = [f"{n}_{c}" for n in model.points for c in ("x", "y", "X_mm", "Y_mm", "Z_mm")]
+        if args.out:
+            self.writer = ResultsWriter(args.out, extra_columns=("ess", "lost", "ms", *columns))
+
+    def write(self, i: int, frame_np, frame, row: Row, state: Any) -> None:
+        if self.writer is not None:
+            extras = {}
+            for n, name in enumerate(self.model.points):
+                for c, v in zip(("x", "y"), row.points2d[n], strict=True):
+                    extras[f"{name}_{c}"] = round(float(v), 2)
+                if np.all(np.isfinite(row.points3d[n])):
+                    for c, v in zip(("X_mm", "Y_mm", "Z_mm"), row.points3d[n], strict=True):
+                        extras[f"{name}_{c}"] = round(float(v), 1)
+            self.writer.write(
+                i, row.box, ess=round(row.ess, 2), lost=int(row.lost), ms=round(row.ms, 3), **extras
+            )
+        if self.logger is not None:
+            self._log(i, frame_np, frame, row, state)
+
+    def _log(self, i: int, frame_np, frame, row: Row, state: Any) -> None:
+        log, source = self.logger, self.source
+        log.log_frame(i, frame_np, source.intrinsics)
+        log.log_box(i, row.box, label="cpf")
+        if source.gt_boxes is not None and (source.visible is None or source.visible[i]):
+            log.log_gt_box(i, source.gt_boxes[i])
+        log.log_cloud(i, state)
+        log.log_scalar(i, "ess", row.ess)
+        log.log_scalar(i, "ms_per_frame", row.ms)
+        if self.model.points:
+            names = list(self.model.points)
+            log.log_points2d(i, row.points2d, labels=names)
+            log.log_points3d(i, row.points3d, labels=names)
+            config, background = self.model.config, self.model.context.background
+            body = self.surface(config, frame, row.box_used, background)
+            log.log_points3d(i, body, "body/surface", radius=0.004)
+
+    def close(self, failing: bool = False) -> None:
+        """Close the CSV and the Rerun log. With ``failing`` (an exception is already on its
+        way), a viewer that cannot take the log is one warning line instead of an error
+        that would hide the first."""
+        if self.writer is not None:
+            self.writer.close()
+        if self.logger is None:
+            return
+        try:
+            self.logger.close()
+        except ViewerUnavailable as e:
+            if not failing:
+                raise
+            print(f"cpf-track: warning: {e}", file=sys.stderr)
+
+
+def _first_row(inputs: Inputs, model: Model, ms: float) -> Row:
+    """The initial frame's row: the start box, the points where they start."""
+    n = len(model.points)
+    p2 = np.asarray(model.context.points, np.float32) if n else np.zeros((0, 2), np.float32)
+    box = np.asarray(inputs.box, np.float32)
+    p3 = np.full((n, 3), np.nan, np.float32)
+    return Row(box, False, float(model.n_particles), ms, p2, p3, box)
+
+
+def _step_row(model: Model, info: Any, ms: float) -> Row:
+    """A step's row from the fields every box filter's info shares (and layer 2's points)."""
+    box = np.asarray(info.box)
+    if model.points:
+        p2, p3 = np.asarray(info.points.mean), np.asarray(info.points.mean3d)
+        used = np.asarray(info.box_used)
+    else:
+        p2, p3, used = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32), box
+    return Row(box, bool(info.lost), float(info.ess), ms, p2, p3, used)
+
+
+def _record(results: Results, i: int, row: Row) -> None:
+    results.frames.append(i)
+    results.boxes.append(row.box)
+    results.lost.append(row.lost)
+    results.ess.append(row.ess)
+    results.points2d.append(row.points2d)
+    results.points3d.append(row.points3d)
+
+
+def _loop(args, source, inputs: Inputs, model: Model, sinks: Sinks, results: Results) -> None:
+    """Init on the first frame, step on the others; every row recorded and written."""
+    import jax
+    import jax.numpy as jnp
+
+    from cpf_jax.progress import Progress
+    from cpf_jax.types import Frame
+
+    init, step = jax.jit(model.filt.init), jax.jit(model.filt.step)
+    key = jax.random.PRNGKey(args.seed)
+    bar = Progress(
+        inputs.n_frames, label="tracking", interactive=False if args.no_progress else None
+    )
+    state = None
+    for i, frame_np in inputs.frames:
+        frame = Frame(jnp.asarray(frame_np.colour), jnp.asarray(frame_np.depth))
+        key, k = jax.random.split(key)
+        t0 = time.perf_counter()
+        if state is None:
+            box = jnp.asarray(inputs.box)
+            state = init(model.params, k, frame, box, model.context)
+            row = _first_row(inputs, model, (time.perf_counter() - t0) * 1000.0)
+        else:
+            state, info = step(model.params, k, state, frame)
+            row = _step_row(model, info, (time.perf_counter() - t0) * 1000.0)
+            results.windowed.append(bool(info.windowed))
+        if not np.all(np.isfinite(row.box)):  # never write a NaN box
+            raise CpfJaxError(f"{frame_name(source, i)}: the filter produced a non-finite box")
+        _record(results, i, row)
+        sinks.write(i, frame_np, frame, row, state)
+        bar.update()
+    bar.close()  # the final progress line only for a completed run
+
+
+def track(args: argparse.Namespace, source, inputs: Inputs, model: Model):
+    """Track every frame of ``inputs``; returns ``(results, viewer_error)``. An error or
+    Ctrl-C closes the outputs first (the CSV keeps its rows, the ``.rrd`` is completed,
+    an interrupted run still writes its ``--plot``)."""
+    sinks = Sinks(args, source, model)
+    results = new_results()
+    try:
+        _loop(args, source, inputs, model, sinks, results)
+    except BaseException as exc:
+        sinks.close(failing=True)
+        if isinstance(exc, KeyboardInterrupt) and args.plot and results.frames:
+            try:
+                errors = point_errors(args, source, model.points, results)
+                write_plot(args, source, results, model.n_particles, errors)
+            except CpfJaxError as e:  # the interrupt, not the plot, is what happened
+                print(f"cpf-track: warning: {e}", file=sys.stderr)
+        raise
+    # A viewer that went away fails the run (exit 2), but only after the results it did
+    # produce (CSV, .rrd, plot, summary) are written and printed.
+    try:
+        sinks.close()
+    except ViewerUnavailable as e:
+        return results, e
+    return results, None
