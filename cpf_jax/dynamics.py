@@ -141,6 +141,7 @@ MOTION = MotionParams(
     size_velocity_decay=P(0.9, "sigmoid"),
 )
 
+
 def _ar1(particles: Array, noise: Array) -> Array:
     cx, cy, vx, vy, w, h, vw, vh = jnp.moveaxis(particles, -1, 0)
     n = jnp.moveaxis(noise, -1, 0)

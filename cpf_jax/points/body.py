@@ -130,9 +130,7 @@ def _reference_pixels(config: PointConfig, body: Array) -> Array:
     return ref_pix
 
 
-def _geodesics(
-    config: PointConfig, w: Array, body: Array, ref_pix: Array
-) -> tuple[Array, Array]:
+def _geodesics(config: PointConfig, w: Array, body: Array, ref_pix: Array) -> tuple[Array, Array]:
     """Geodesic distances ``[R, Hw, Ww]`` (mm) from each reference over the surface graph
     (min-plus relaxation, thesis 4.3) and the sweeps run; zeros without geodesic weights."""
     shape = config.window

@@ -310,9 +310,9 @@ def point_step(
     surface = point_3d(config, bm, mean, jnp.zeros_like(off))[:, 2]
     threshold = jnp.where(recovered, 0.0, config.ess_threshold)  # a fresh cloud is uniform
     scheme = rs.SCHEMES[config.resampler]
-    particles, lw, resampled = jax.vmap(
-        lambda k, w, x, t: rs.resample_if(k, w, x, t, scheme)
-    )(jax.random.split(k_res, p), lw, jnp.concatenate([xy, vel], -1), threshold)
+    particles, lw, resampled = jax.vmap(lambda k, w, x, t: rs.resample_if(k, w, x, t, scheme))(
+        jax.random.split(k_res, p), lw, jnp.concatenate([xy, vel], -1), threshold
+    )
     new_state = PointState(
         particles,
         lw,
