@@ -43,9 +43,9 @@ JOINT_NAMES: tuple[str, ...] = (
 )
 J = {name: i for i, name in enumerate(JOINT_NAMES)}
 
-# Body parts (primitives) and the clothing slot that colours them.
-# (The right side's parts come first: their indices seed the textures, and the side they
-# were first given to is the person's right; see the module docstring.)
+# Body parts (primitives), each coloured by a clothing slot. A part's position is its
+# primitive and material index, and the order breaks z-buffer ties, so it is part of the
+# output; the right side (+l, module docstring) comes first.
 PART_NAMES: tuple[str, ...] = (
     "face",
     "hair",
@@ -136,6 +136,65 @@ def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def _leg_angles(g: dict, phase: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``[2]`` thigh, shank and foot-pitch angles (rad; right side first) at ``phase``.
+
+    Thighs swing ``A sin(phase)`` forward of vertical in antiphase; a leg swings while
+    ``cos(phase) > 0``, and its knee flexion peaks early in the swing.
+    """
+    sin_p = np.sin(phase)
+    alpha = g["hip"] * np.array([sin_p, -sin_p])  # thigh angle from vertical, forward > 0
+    swing = np.maximum(0.0, np.cos(np.array([phase, phase + np.pi]) + np.pi / 6)) ** 1.5
+    knee = g["knee_stance"] + g["knee_swing"] * swing
+    beta = alpha - knee  # shank angle from vertical
+    rho = np.clip(0.6 * beta, -0.45, 0.45)  # foot pitch: toe down at push-off, up at strike
+    return alpha, beta, rho
+
+
+def _hip_height(alpha: np.ndarray, beta: np.ndarray, rho: np.ndarray, k: float) -> float:
+    """Height of the hip joints above the floor that puts the lower shoe on the floor."""
+    th, sh = THIGH * k, SHIN * k
+    fr = np.array(FOOT_RADII) * k
+    knee_dy = -th * np.cos(alpha)
+    ankle_dy = knee_dy - sh * np.cos(beta)
+    foot_c_dy = ankle_dy + FOOT_FWD * k * np.sin(rho) - FOOT_DOWN * k * np.cos(rho)
+    foot_bottom = foot_c_dy - np.sqrt((fr[2] * np.sin(rho)) ** 2 + (fr[1] * np.cos(rho)) ** 2)
+    return -foot_bottom.min()
+
+
+def _leg(joints, name: str, hip, f, u, alpha: float, beta: float, rho: float, k: float):
+    """Write the leg joints of side ``name`` from its hip joint; returns the foot's
+    forward and up directions."""
+    kn = hip + THIGH * k * (np.sin(alpha) * f - np.cos(alpha) * u)
+    an = kn + SHIN * k * (np.sin(beta) * f - np.cos(beta) * u)
+    fd = np.cos(rho) * f + np.sin(rho) * u
+    fu = -np.sin(rho) * f + np.cos(rho) * u
+    joints[J[f"{name}_hip"]] = hip
+    joints[J[f"{name}_knee"]] = kn
+    joints[J[f"{name}_ankle"]] = an
+    joints[J[f"{name}_foot"]] = an + fd * FOOT_FWD * k - fu * FOOT_DOWN * k
+    return fd, fu
+
+
+def _arm(joints, name: str, sgn: float, pelvis, tu, l, f, g: dict, sin_p: float, k: float):
+    """Write the arm joints of side ``name`` (``sgn`` +1 on ``+l``); the arm swings in
+    antiphase with the leg of its side, slightly abducted, the elbow bending more as the
+    arm swings forward. Returns the upper-arm and forearm directions."""
+    gamma = -sgn * g["arm"] * sin_p
+    eps = g["elbow"] + np.radians(15) * max(0.0, np.sin(gamma) / max(np.sin(g["arm"]), 1e-6))
+    abd = np.radians(7)
+    sho = pelvis + tu * SHOULDER_UP * k + sgn * l * SHOULDER_HALF * k
+    ua = np.cos(abd) * (np.sin(gamma) * f - np.cos(gamma) * tu) + sgn * np.sin(abd) * l
+    fa = np.cos(abd) * (np.sin(gamma + eps) * f - np.cos(gamma + eps) * tu) + sgn * np.sin(abd) * l
+    ua, fa = _unit(ua), _unit(fa)
+    el = sho + ua * UPPER_ARM * k
+    wr = el + fa * FOREARM * k
+    joints[J[f"{name}_shoulder"]] = sho
+    joints[J[f"{name}_elbow"]] = el
+    joints[J[f"{name}_hand"]] = wr + fa * HAND_OFF * k
+    return ua, fa
+
+
 def body_pose(
     root_xz: np.ndarray, heading_xz: np.ndarray, phase: float, speed: float, height: float = 1.75
 ) -> Pose:
@@ -143,6 +202,7 @@ def body_pose(
 
     root_xz: ``[2]`` ground point under the pelvis (x, z) in metres; heading_xz: ``[2]``
     walking direction; phase: gait phase (rad), the right thigh is ``A sin(phase)`` forward.
+    The pelvis sways sideways with ``cos(phase)`` and the trunk leans forward with speed.
     """
     g = gait_parameters(speed)
     k = height / 1.75
@@ -150,27 +210,10 @@ def body_pose(
     f = np.array([heading_xz[0], 0.0, heading_xz[1]])
     f = f / np.linalg.norm(f)
     l = np.cross(u, f)
-
     sin_p, cos_p = np.sin(phase), np.cos(phase)
-    alpha = g["hip"] * np.array([sin_p, -sin_p])  # thigh angle from vertical, forward > 0
-    # Swing (thigh moving forward) is cos(phase) > 0; knee flexion peaks early in swing.
-    swing = np.maximum(0.0, np.cos(np.array([phase, phase + np.pi]) + np.pi / 6)) ** 1.5
-    knee = g["knee_stance"] + g["knee_swing"] * swing
-    beta = alpha - knee  # shank angle from vertical
-    rho = np.clip(0.6 * beta, -0.45, 0.45)  # foot pitch: toe down at push-off, up at strike
-
-    th, sh, ah = THIGH * k, SHIN * k, ANKLE_H * k
-    fr = np.array(FOOT_RADII) * k
-    # Heights relative to the hip joints; the lower foot decides the pelvis height.
-    knee_dy = -th * np.cos(alpha)
-    ankle_dy = knee_dy - sh * np.cos(beta)
-    foot_c_dy = ankle_dy + FOOT_FWD * k * np.sin(rho) - FOOT_DOWN * k * np.cos(rho)
-    foot_bottom = foot_c_dy - np.sqrt((fr[2] * np.sin(rho)) ** 2 + (fr[1] * np.cos(rho)) ** 2)
-    hip_y = -foot_bottom.min()
-    del ah
-
-    sway = -g["sway"] * cos_p
-    pelvis = np.array([root_xz[0], hip_y, root_xz[1]]) + l * sway
+    alpha, beta, rho = _leg_angles(g, phase)
+    hip_y = _hip_height(alpha, beta, rho, k)
+    pelvis = np.array([root_xz[0], hip_y, root_xz[1]]) + l * (-g["sway"] * cos_p)
     lean = g["lean"]
     tu = np.cos(lean) * u + np.sin(lean) * f
 
@@ -183,42 +226,73 @@ def body_pose(
     joints[J["head"]] = head
     joints[J["head_top"]] = head + tu * (HEAD_RADII[1] + 0.02) * k
 
-    ua_dirs, fa_dirs, ffwd, fup = [], [], [], []
+    limbs = []
     for side, sgn in ((0, 1.0), (1, -1.0)):
         name = "right" if side == 0 else "left"  # +l is the anatomical right (docstring)
         hip = pelvis + sgn * l * HIP_HALF * k
-        kn = hip + th * (np.sin(alpha[side]) * f - np.cos(alpha[side]) * u)
-        an = kn + sh * (np.sin(beta[side]) * f - np.cos(beta[side]) * u)
-        fd = np.cos(rho[side]) * f + np.sin(rho[side]) * u
-        fu = -np.sin(rho[side]) * f + np.cos(rho[side]) * u
-        joints[J[f"{name}_hip"]] = hip
-        joints[J[f"{name}_knee"]] = kn
-        joints[J[f"{name}_ankle"]] = an
-        joints[J[f"{name}_foot"]] = an + fd * FOOT_FWD * k - fu * FOOT_DOWN * k
-        ffwd.append(fd)
-        fup.append(fu)
+        foot = _leg(joints, name, hip, f, u, alpha[side], beta[side], rho[side], k)
+        limbs.append((*_arm(joints, name, sgn, pelvis, tu, l, f, g, sin_p, k), *foot))
+    ua, fa, ffwd, fup = (np.array(x) for x in zip(*limbs, strict=True))
+    return Pose(joints, f, l, tu, ua, fa, ffwd, fup)
 
-        # Arms swing in antiphase with the leg of the same side.
-        gamma = -sgn * g["arm"] * sin_p
-        eps = g["elbow"] + np.radians(15) * max(0.0, np.sin(gamma) / max(np.sin(g["arm"]), 1e-6))
-        abd = np.radians(7)
-        sho = pelvis + tu * SHOULDER_UP * k + sgn * l * SHOULDER_HALF * k
-        ua = np.cos(abd) * (np.sin(gamma) * f - np.cos(gamma) * tu) + sgn * np.sin(abd) * l
-        fa = (
-            np.cos(abd) * (np.sin(gamma + eps) * f - np.cos(gamma + eps) * tu)
-            + sgn * np.sin(abd) * l
-        )
-        ua, fa = _unit(ua), _unit(fa)
-        el = sho + ua * UPPER_ARM * k
-        wr = el + fa * FOREARM * k
-        joints[J[f"{name}_shoulder"]] = sho
-        joints[J[f"{name}_elbow"]] = el
-        joints[J[f"{name}_hand"]] = wr + fa * HAND_OFF * k
-        ua_dirs.append(ua)
-        fa_dirs.append(fa)
-    return Pose(
-        joints, f, l, tu, np.array(ua_dirs), np.array(fa_dirs), np.array(ffwd), np.array(fup)
-    )
+
+def _trunk_parts(pose: Pose, k: float) -> dict[str, tuple]:
+    """Head, hair, neck, chest, shoulders, abdomen and hips."""
+    jt, f, tu = pose.joints, pose.f, pose.trunk_up
+    body_axes = np.stack([pose.l, tu, f], axis=1)  # lateral, up, forward
+    pelvis, head = jt[J["pelvis"]], jt[J["head"]]
+    hr = np.array(HEAD_RADII) * k
+    return {
+        "face": ("ellipsoid", head, body_axes, hr),
+        "hair": (
+            "ellipsoid",
+            head + tu * 0.02 * k - f * 0.022 * k,
+            body_axes,
+            hr + np.array([0.008, 0.006, 0.004]) * k,
+        ),
+        "neck": ("capsule", jt[J["neck"]] - tu * 0.03 * k, head - tu * 0.06 * k, 0.05 * k, f),
+        "chest": (
+            "ellipsoid",
+            pelvis + tu * 0.33 * k,
+            body_axes,
+            np.array([0.165, 0.21, 0.105]) * k,
+        ),
+        # From the +l side: textures run along the capsule.
+        "shoulders": ("capsule", jt[J["right_shoulder"]], jt[J["left_shoulder"]], 0.06 * k, f),
+        "abdomen": (
+            "ellipsoid",
+            pelvis + tu * 0.15 * k,
+            body_axes,
+            np.array([0.15, 0.14, 0.10]) * k,
+        ),
+        "hips": ("ellipsoid", pelvis + tu * 0.02 * k, body_axes, np.array([0.16, 0.12, 0.105]) * k),
+    }
+
+
+def _limb_parts(pose: Pose, side: int, name: str, k: float) -> dict[str, tuple]:
+    """Upper arm, forearm, hand, thigh, shin and foot of one side (side 0 is on ``+l``)."""
+    jt, f, l = pose.joints, pose.f, pose.l
+    sho, el, hand = jt[J[f"{name}_shoulder"]], jt[J[f"{name}_elbow"]], jt[J[f"{name}_hand"]]
+    wr = hand - pose.fa_dir[side] * HAND_OFF * k
+    long_ax = pose.fa_dir[side]
+    thick = l - (l @ long_ax) * long_ax
+    thick /= np.linalg.norm(thick)
+    width = np.cross(long_ax, thick)
+    hip, kn, an = jt[J[f"{name}_hip"]], jt[J[f"{name}_knee"]], jt[J[f"{name}_ankle"]]
+    foot_axes = np.stack([l, pose.foot_up[side], pose.foot_fwd[side]], axis=1)
+    return {
+        f"{name}_upper_arm": ("capsule", sho, el, 0.045 * k, f),
+        f"{name}_forearm": ("capsule", el, wr, 0.037 * k, f),
+        f"{name}_hand": (
+            "ellipsoid",
+            hand,
+            np.stack([thick, long_ax, width], axis=1),
+            np.array([0.022, 0.085, 0.045]) * k,
+        ),
+        f"{name}_thigh": ("capsule", hip, kn, 0.07 * k, f),
+        f"{name}_shin": ("capsule", kn, an, 0.05 * k, f),
+        f"{name}_foot": ("ellipsoid", jt[J[f"{name}_foot"]], foot_axes, np.array(FOOT_RADII) * k),
+    }
 
 
 def body_parts(pose: Pose, height: float = 1.75) -> list[tuple]:
@@ -228,72 +302,10 @@ def body_parts(pose: Pose, height: float = 1.75) -> list[tuple]:
     [3, 3] (columns), radii [3])``.
     """
     k = height / 1.75
-    jt = pose.joints
-    f, l, tu = pose.f, pose.l, pose.trunk_up
-    body_axes = np.stack([l, tu, f], axis=1)  # lateral, up, forward
-    pelvis = jt[J["pelvis"]]
-    head = jt[J["head"]]
-    hr = np.array(HEAD_RADII) * k
-    parts: list[tuple] = [None] * len(PART_NAMES)
-    parts[P["face"]] = ("ellipsoid", head, body_axes, hr)
-    parts[P["hair"]] = (
-        "ellipsoid",
-        head + tu * 0.02 * k - f * 0.022 * k,
-        body_axes,
-        hr + np.array([0.008, 0.006, 0.004]) * k,
-    )
-    parts[P["neck"]] = ("capsule", jt[J["neck"]] - tu * 0.03 * k, head - tu * 0.06 * k, 0.05 * k, f)
-    parts[P["chest"]] = (
-        "ellipsoid",
-        pelvis + tu * 0.33 * k,
-        body_axes,
-        np.array([0.165, 0.21, 0.105]) * k,
-    )
-    parts[P["shoulders"]] = (
-        "capsule",
-        jt[J["right_shoulder"]],  # from the +l side (textures run along the capsule)
-        jt[J["left_shoulder"]],
-        0.06 * k,
-        f,
-    )
-    parts[P["abdomen"]] = (
-        "ellipsoid",
-        pelvis + tu * 0.15 * k,
-        body_axes,
-        np.array([0.15, 0.14, 0.10]) * k,
-    )
-    parts[P["hips"]] = (
-        "ellipsoid",
-        pelvis + tu * 0.02 * k,
-        body_axes,
-        np.array([0.16, 0.12, 0.105]) * k,
-    )
-    for side, name in ((0, "right"), (1, "left")):  # side 0 is on +l (Pose)
-        sho, el, hand = jt[J[f"{name}_shoulder"]], jt[J[f"{name}_elbow"]], jt[J[f"{name}_hand"]]
-        wr = hand - pose.fa_dir[side] * HAND_OFF * k
-        parts[P[f"{name}_upper_arm"]] = ("capsule", sho, el, 0.045 * k, f)
-        parts[P[f"{name}_forearm"]] = ("capsule", el, wr, 0.037 * k, f)
-        long_ax = pose.fa_dir[side]
-        thick = l - (l @ long_ax) * long_ax
-        thick /= np.linalg.norm(thick)
-        width = np.cross(long_ax, thick)
-        parts[P[f"{name}_hand"]] = (
-            "ellipsoid",
-            hand,
-            np.stack([thick, long_ax, width], axis=1),
-            np.array([0.022, 0.085, 0.045]) * k,
-        )
-        hip, kn, an = jt[J[f"{name}_hip"]], jt[J[f"{name}_knee"]], jt[J[f"{name}_ankle"]]
-        parts[P[f"{name}_thigh"]] = ("capsule", hip, kn, 0.07 * k, f)
-        parts[P[f"{name}_shin"]] = ("capsule", kn, an, 0.05 * k, f)
-        foot_axes = np.stack([l, pose.foot_up[side], pose.foot_fwd[side]], axis=1)
-        parts[P[f"{name}_foot"]] = (
-            "ellipsoid",
-            jt[J[f"{name}_foot"]],
-            foot_axes,
-            np.array(FOOT_RADII) * k,
-        )
-    return parts
+    parts = _trunk_parts(pose, k)
+    for side, name in ((0, "right"), (1, "left")):
+        parts.update(_limb_parts(pose, side, name, k))
+    return [parts[n] for n in PART_NAMES]
 
 
 # ---------------------------------------------------------------------------------------------

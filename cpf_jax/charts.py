@@ -127,6 +127,104 @@ def _limits(values: list[np.ndarray], given, log: bool, name: str) -> tuple[floa
     return lo - pad, hi + pad
 
 
+def _series_arrays(series, log_x: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{label: (x, y)}`` as flat float64 arrays, checked (see :func:`line_chart`)."""
+    if not series:
+        raise ValueError("line_chart needs at least one series")
+    data = {}
+    for label, pair in series.items():
+        if len(pair) != 2:
+            raise ValueError(f"series {label!r} must be an (x, y) pair")
+        x = np.asarray(pair[0], np.float64).reshape(-1)
+        y = np.asarray(pair[1], np.float64).reshape(-1)
+        if x.shape != y.shape:
+            raise ValueError(f"series {label!r}: {x.size} x values but {y.size} y values")
+        if log_x and np.any(np.isfinite(x) & (x <= 0)):
+            raise ValueError(f"series {label!r} has x <= 0 on a log x axis")
+        data[label] = (x, y)
+    return data
+
+
+def _chart_axes(data, xlim, ylim, log_x: bool, size: tuple[int, int]) -> Axes:
+    """The plot area inside fixed margins (tick labels left, axis label below, title
+    above), with limits from the data where not given."""
+    xs = [x[np.isfinite(y)] for x, y in data.values()]
+    ys = [y[np.isfinite(x)] for x, y in data.values()]
+    xlim = _limits(xs, xlim, log_x, "xlim")
+    ylim = _limits(ys, ylim, False, "ylim")
+    width, height = int(size[0]), int(size[1])
+    left, right, top, bottom = 58, 16, 48, 44
+    if width < left + right + 20 or height < top + bottom + 20:
+        raise ValueError(f"size {size} is too small for a chart")
+    return Axes(xlim, ylim, left, top, width - left - right, height - top - bottom, log_x)
+
+
+def _ends(axes: Axes) -> tuple[int, int]:
+    """Last pixel column and row of the plot area."""
+    return axes.left + axes.width - 1, axes.top + axes.height - 1
+
+
+def _draw_ticks(img: np.ndarray, axes: Axes) -> None:
+    """Grid lines, tick marks and tick labels of both axes, and the plot frame."""
+    x_end, y_end = _ends(axes)
+    xlim, ylim = axes.xlim, axes.ylim
+    for t in nice_ticks(*ylim):
+        _, py = axes.to_pixels(np.array(xlim[0]), np.array(t))
+        py = int(round(float(py)))
+        cv2.line(img, (axes.left, py), (x_end, py), _GRID, 1)
+        cv2.line(img, (axes.left - 4, py), (axes.left, py), _INK, 1)
+        text = _format(t)
+        (tw, _), _ = cv2.getTextSize(text, _FONT, _TEXT, 1)
+        cv2.putText(img, text, (axes.left - 7 - tw, py + 4), _FONT, _TEXT, _INK, 1, cv2.LINE_AA)
+    for t in nice_ticks(*xlim, target=6, log=axes.log_x):
+        px, _ = axes.to_pixels(np.array(t), np.array(ylim[0]))
+        px = int(round(float(px)))
+        cv2.line(img, (px, axes.top), (px, y_end), _GRID, 1)
+        cv2.line(img, (px, y_end), (px, y_end + 4), _INK, 1)
+        text = _format(t)
+        (tw, _), _ = cv2.getTextSize(text, _FONT, _TEXT, 1)
+        cv2.putText(img, text, (px - tw // 2, y_end + 17), _FONT, _TEXT, _INK, 1, cv2.LINE_AA)
+    cv2.rectangle(img, (axes.left, axes.top), (x_end, y_end), _INK, 1)
+
+
+def _draw_series(canvas: np.ndarray, axes: Axes, x, y, colour, markers: bool) -> None:
+    """One series as anti-aliased polylines with 4 fractional bits; consecutive finite
+    points form one polyline and a non-finite point breaks it."""
+    px, py = axes.to_pixels(x, y)
+    ok = np.isfinite(px) & np.isfinite(py)
+    pts = np.stack([px, py], -1)
+    run: list[np.ndarray] = []
+    for j in range(len(x) + 1):
+        if j < len(x) and ok[j]:
+            run.append(pts[j])
+            continue
+        if len(run) > 1:
+            line = np.round(np.array(run) * 16).astype(np.int32)
+            cv2.polylines(canvas, [line], False, colour, 2, cv2.LINE_AA, shift=4)
+        run = []
+    if markers:
+        for p in pts[ok]:
+            centre = (int(round(p[0] * 16)), int(round(p[1] * 16)))
+            cv2.circle(canvas, centre, 3 * 16, colour, -1, cv2.LINE_AA, shift=4)
+
+
+def _draw_legend_entry(img: np.ndarray, axes: Axes, height: int, i: int, label, colour) -> None:
+    """Line ``i`` of the legend below the plot block of ``height`` pixels."""
+    ly = height + _LINE_H * i + 10
+    cv2.line(img, (axes.left, ly), (axes.left + 24, ly), colour, 2, cv2.LINE_AA)
+    cv2.putText(img, label, (axes.left + 32, ly + 4), _FONT, _TEXT, _INK, 1, cv2.LINE_AA)
+
+
+def _draw_labels(img: np.ndarray, axes: Axes, title: str, xlabel: str, ylabel: str) -> None:
+    """Title above the plot, y label above the y axis, x label centred below the x axis."""
+    _, y_end = _ends(axes)
+    cv2.putText(img, title, (axes.left, 20), _FONT, 0.5, _INK, 1, cv2.LINE_AA)
+    cv2.putText(img, ylabel, (4, axes.top - 12), _FONT, _TEXT, _INK, 1, cv2.LINE_AA)
+    (tw, _), _ = cv2.getTextSize(xlabel, _FONT, _TEXT, 1)
+    origin = (axes.left + (axes.width - tw) // 2, y_end + 36)
+    cv2.putText(img, xlabel, origin, _FONT, _TEXT, _INK, 1, cv2.LINE_AA)
+
+
 def line_chart(
     series: Mapping[str, tuple[Sequence[float], Sequence[float]]],
     *,
@@ -157,90 +255,21 @@ def line_chart(
       ValueError: no series, a series whose x and y lengths differ, non-positive x on
         a log axis, or unusable limits.
     """
-    if not series:
-        raise ValueError("line_chart needs at least one series")
-    data = {}
-    for label, pair in series.items():
-        if len(pair) != 2:
-            raise ValueError(f"series {label!r} must be an (x, y) pair")
-        x = np.asarray(pair[0], np.float64).reshape(-1)
-        y = np.asarray(pair[1], np.float64).reshape(-1)
-        if x.shape != y.shape:
-            raise ValueError(f"series {label!r}: {x.size} x values but {y.size} y values")
-        if log_x and np.any(np.isfinite(x) & (x <= 0)):
-            raise ValueError(f"series {label!r} has x <= 0 on a log x axis")
-        data[label] = (x, y)
-    xs = [x[np.isfinite(y)] for x, y in data.values()]
-    ys = [y[np.isfinite(x)] for x, y in data.values()]
-    xlim = _limits(xs, xlim, log_x, "xlim")
-    ylim = _limits(ys, ylim, False, "ylim")
-
+    data = _series_arrays(series, log_x)
+    axes = _chart_axes(data, xlim, ylim, log_x, size)
     width, height = int(size[0]), int(size[1])
-    left, right, top, bottom = 58, 16, 48, 44
-    if width < left + right + 20 or height < top + bottom + 20:
-        raise ValueError(f"size {size} is too small for a chart")
-    axes = Axes(xlim, ylim, left, top, width - left - right, height - top - bottom, log_x)
     img = np.full((height + _LINE_H * len(data) + 6, width, 3), 255, np.uint8)
-    x_end, y_end = axes.left + axes.width - 1, axes.top + axes.height - 1
-
-    for t in nice_ticks(*ylim):
-        _, py = axes.to_pixels(np.array(xlim[0]), np.array(t))
-        py = int(round(float(py)))
-        cv2.line(img, (axes.left, py), (x_end, py), _GRID, 1)
-        cv2.line(img, (axes.left - 4, py), (axes.left, py), _INK, 1)
-        text = _format(t)
-        (tw, _), _ = cv2.getTextSize(text, _FONT, _TEXT, 1)
-        cv2.putText(img, text, (axes.left - 7 - tw, py + 4), _FONT, _TEXT, _INK, 1, cv2.LINE_AA)
-    for t in nice_ticks(*xlim, target=6, log=log_x):
-        px, _ = axes.to_pixels(np.array(t), np.array(ylim[0]))
-        px = int(round(float(px)))
-        cv2.line(img, (px, axes.top), (px, y_end), _GRID, 1)
-        cv2.line(img, (px, y_end), (px, y_end + 4), _INK, 1)
-        text = _format(t)
-        (tw, _), _ = cv2.getTextSize(text, _FONT, _TEXT, 1)
-        cv2.putText(img, text, (px - tw // 2, y_end + 17), _FONT, _TEXT, _INK, 1, cv2.LINE_AA)
-    cv2.rectangle(img, (axes.left, axes.top), (x_end, y_end), _INK, 1)
-
+    _draw_ticks(img, axes)
     # Lines are clipped to the plot area: draw them on a copy and paste the area back.
     canvas = img.copy()
     for i, (label, (x, y)) in enumerate(data.items()):
         colour = (colours or {}).get(label, PALETTE[i % len(PALETTE)])
-        px, py = axes.to_pixels(x, y)
-        ok = np.isfinite(px) & np.isfinite(py)
-        pts = np.stack([px, py], -1)
-        # Consecutive finite points form one polyline; a non-finite point breaks it.
-        run: list[np.ndarray] = []
-        for j in range(len(x) + 1):
-            if j < len(x) and ok[j]:
-                run.append(pts[j])
-                continue
-            if len(run) > 1:
-                line = np.round(np.array(run) * 16).astype(np.int32)  # 4 fractional bits
-                cv2.polylines(canvas, [line], False, colour, 2, cv2.LINE_AA, shift=4)
-            run = []
-        if markers:
-            for p in pts[ok]:
-                centre = (int(round(p[0] * 16)), int(round(p[1] * 16)))
-                cv2.circle(canvas, centre, 3 * 16, colour, -1, cv2.LINE_AA, shift=4)
-        ly = height + _LINE_H * i + 10
-        cv2.line(img, (axes.left, ly), (axes.left + 24, ly), colour, 2, cv2.LINE_AA)
-        cv2.putText(img, label, (axes.left + 32, ly + 4), _FONT, _TEXT, _INK, 1, cv2.LINE_AA)
+        _draw_series(canvas, axes, x, y, colour, markers)
+        _draw_legend_entry(img, axes, height, i, label, colour)
+    x_end, y_end = _ends(axes)
     inner = (slice(axes.top + 1, y_end), slice(axes.left + 1, x_end))
     img[inner] = canvas[inner]
-
-    cv2.putText(img, title, (axes.left, 20), _FONT, 0.5, _INK, 1, cv2.LINE_AA)
-    cv2.putText(img, ylabel, (4, axes.top - 12), _FONT, _TEXT, _INK, 1, cv2.LINE_AA)
-    (tw, _), _ = cv2.getTextSize(xlabel, _FONT, _TEXT, 1)
-    cv2.putText(
-        img,
-        xlabel,
-        (axes.left + (axes.width - tw) // 2, y_end + 36),
-        _FONT,
-        _TEXT,
-        _INK,
-        1,
-        cv2.LINE_AA,
-    )
+    _draw_labels(img, axes, title, xlabel, ylabel)
     return img
 
 

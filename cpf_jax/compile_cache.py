@@ -2,10 +2,7 @@
 
 Compiling is much of a short run's time. JAX can keep compiled programs on disk and look
 them up by a hash of the program, the XLA flags and the device, so a second run with the
-same model and sizes skips the compile: on a 2-core CPU (2026-11-26) the demo
-(``cpf-track walk_across_medium --particles 200``) took 18.1 s on an empty cache and 12.0 s
-on the second run, and ``cpf-track walk_towards --model grid-occlusion --points joints
---max-frames 30`` 65.1 s and 22.8 s, with the same output. The library never switches
+same model and sizes skips the compile and gives the same output. The library never switches
 this on by itself (a process-wide JAX setting); the command line does, in
 :func:`default_dir` unless told otherwise (``--compile-cache DIR|off``), and leaves a
 cache the user or a notebook has already configured (``JAX_COMPILATION_CACHE_DIR``,

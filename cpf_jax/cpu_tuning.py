@@ -5,11 +5,10 @@
     10-50 MB) on every call. glibc serves blocks above its mmap threshold with
     fresh ``mmap`` pages, returns them to the kernel on ``free`` and trims the
     heap top, so every frame pays the page faults again (visible as system
-    time: 12,000 faults, 15 ms, per N = 100k colour step). Raising
-    ``M_MMAP_THRESHOLD`` (``mallopt`` parameter -3; 1 GiB requested, 32 MiB
-    where glibc caps it) and ``M_TRIM_THRESHOLD`` (-1, 1 GiB) keeps freed
-    memory in the process and reuses it. By default ``M_MMAP_MAX`` (-4) is also
-    set to 0 so that no block is served by a fresh ``mmap``
+    time). Raising ``M_MMAP_THRESHOLD`` (``mallopt`` parameter -3; 1 GiB
+    requested, 32 MiB where glibc caps it) and ``M_TRIM_THRESHOLD`` (-1, 1 GiB)
+    keeps freed memory in the process and reuses it. By default ``M_MMAP_MAX``
+    (-4) is also set to 0 so that no block is served by a fresh ``mmap``
     (``disable_mmap=False`` keeps glibc's mmap for huge blocks). The cost: the
     process keeps its peak heap size.
 
@@ -17,12 +16,8 @@
     heap for every thread. XLA's worker threads allocate from per-thread
     arenas, whose extra heaps glibc unmaps as soon as one is empty, whatever
     the trim threshold; a temporary that fills such a heap is faulted in anew on
-    every call. Measured on the 2-core Intel Xeon host (2026-11-28, N = 100k
-    colour step, 40 steps after warm-up, ``getrusage``): 7,100 minor faults and
-    14-17 ms of system time per step with the thresholds alone, 20-60 faults
-    and 1.3-2.5 ms with one arena; wall time 65-70 -> 61 ms per step. Same
-    effect as ``GLIBC_TUNABLES=glibc.malloc.arena_max=1``, which must be set
-    before the process starts.
+    every call. Same effect as ``GLIBC_TUNABLES=glibc.malloc.arena_max=1``, which
+    must be set before the process starts.
 
     Call it **before JAX allocates anything** (first thing in a script or
     benchmark, before the first jitted call): glibc applies the thresholds to
@@ -41,38 +36,18 @@
 
     ``library_fusions=False`` stops XLA:CPU (jax 0.10) from handing elementwise
     chains and reductions to YNNPACK (``__ynn_fusion`` in the compiled HLO). In
-    the colour step, the per-chunk ``sqrt(counts) . sqrt(q)`` reduction ran as
-    such a fusion without XLA's outer-dimension split across the cores.
-    Measured on the 2-core AMD EPYC host (``experiments/bench_colour.py``,
-    2026-11-27T22:01, medians of 50 steps, the second in a fresh process): N =
-    1k 9.0 -> 6.3 ms, N = 10k 12.4 -> 9.6 ms, N = 100k 46.3 -> 37.6 ms; in
-    separate processes timed back to back, N = 10k about 1 ms faster. In the
-    runs of 2026-11-28 the fresh process without the flag was sometimes the
-    faster one (01:20: 6.7 / 10.1 / 31.7 ms against 7.9 / 11.8 / 39.5; 04:30:
-    4.8 / 8.5 / 31.8 against 5.3 / 8.3 / 29.8; 04:50: 6.2 / 9.8 / 36.9 against
-    6.9 / 9.9 / 38.5): between processes the difference is within this host's
-    noise. Until 2026-11-27 the benchmark set the flag after importing
-    ``cpf_jax``, which had already started JAX, so XLA never saw it. Other
-    programs may gain or lose: time yours.
+    the colour step, the per-chunk ``sqrt(counts) . sqrt(q)`` reduction runs as
+    such a fusion without XLA's outer-dimension split across the cores. Between
+    processes the gain is within a shared host's noise, so other programs may gain
+    or lose: time yours.
 
-    Other XLA:CPU flags did not help the colour step. On 2026-11-28 (10:00-10:18,
-    a slow spell), the N = 100k default step was timed in fresh processes taking
-    turns, each with ``library_fusions=False``'s flag plus one more. Figures are medians
-    of 40 steps.
-
-    - Baseline, 5 processes: 41.9-60.9 ms (median 54.7).
-    - ``--xla_cpu_use_xnnpack=true``: 41.6-50.9 ms (48.2).
-    - ``--xla_cpu_enable_concurrency_optimized_scheduler=true``: 39.3-53.9 ms (48.1).
-    - Both together: 43.1-58.3 ms (50.6).
-    - ``--xla_cpu_prefer_vector_width=512``, 3 processes: 40.3-54.5 ms.
-    - ``--xla_cpu_parallel_codegen_split_count=1``, 3 processes: 44.5-48.7 ms.
-
-    All of these gave bit-identical particles, and every difference is within the
-    baseline's own spread of 19 ms. ``--xla_cpu_prefer_vector_width=128`` was
-    slower (48.1-65.0 ms) and changed the particles. In jax 0.10,
-    ``--xla_cpu_use_multi_output_fusion``,
+    In jax 0.10, ``--xla_cpu_use_multi_output_fusion``,
     ``--xla_cpu_enable_experimental_deallocation`` and
-    ``--xla_cpu_small_while_loop_byte_threshold`` are unknown flags and abort the process.
+    ``--xla_cpu_small_while_loop_byte_threshold`` are unknown flags and abort the
+    process.
+
+The measurements behind these settings, and the other XLA:CPU flags timed against them,
+are dated entries of ``docs/decisions.md``.
 """
 
 from __future__ import annotations
@@ -81,7 +56,7 @@ import ctypes
 import ctypes.util
 import os
 
-__all__ = ["tune_malloc", "xla_cpu_flags"]
+__all__ = ["load_glibc", "tune_malloc", "xla_cpu_flags"]
 
 # glibc <malloc.h> parameter numbers.
 _M_TRIM_THRESHOLD = -1
@@ -97,7 +72,8 @@ _TRIM_THRESHOLD = 1 << 30
 YNN_OFF_FLAG = "--xla_cpu_experimental_ynn_fusion_type="
 
 
-def _glibc():
+def load_glibc() -> ctypes.CDLL | None:
+    """The C library as a ``ctypes`` handle when it is glibc, else None (loaded on call)."""
     if os.name != "posix":
         return None
     try:
@@ -126,7 +102,7 @@ def tune_malloc(
     for value in (mmap_threshold, trim_threshold):
         if not -(2**31) <= int(value) < 2**31:
             raise ValueError(f"mallopt value {value} does not fit a C int")
-    libc = _glibc()
+    libc = load_glibc()
     if libc is None:
         return False
     if hasattr(libc.mallopt, "argtypes"):

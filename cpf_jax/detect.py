@@ -87,6 +87,41 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
     return labels == k
 
 
+def _foreground(colour: np.ndarray, depth: np.ndarray, background: Background, c: DetectConfig):
+    """``[H, W] uint8`` foreground after the opening and the closing (rules 1 and 2)."""
+    fg = np.asarray(
+        _mask_fn(c.depth_abs, c.depth_rel, c.colour_threshold)(colour, depth, background)
+    )
+    fg = fg.astype(np.uint8)
+    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((c.open_px, c.open_px), np.uint8))
+    return cv2.morphologyEx(fg, cv2.MORPH_CLOSE, np.ones((c.close_px, c.close_px), np.uint8))
+
+
+def _main_depth_part(blob: np.ndarray, z: np.ndarray, c: DetectConfig):
+    """``(main, rest)``: the largest connected part of ``blob`` near its median depth (with
+    its colour-only pixels), and what is left of the blob, or None when nothing is cut
+    (rule 3). Each cut leaves a non-empty part, so cutting the rest again terminates."""
+    measured = blob & (z > 0)
+    if measured.sum() < 0.2 * blob.sum():
+        return blob, None
+    med = float(np.median(z[measured]))
+    near = np.abs(z - med) <= max(c.depth_gap, c.depth_gap_rel * med)
+    main = _largest_component(blob & (near | (z == 0)))
+    if 0 < main.sum() < blob.sum():
+        return main, blob & ~main
+    return blob, None
+
+
+def _person_box(blob: np.ndarray, h: int, c: DetectConfig):
+    """The tight xywh box of ``blob`` if it is person-shaped (rule 4), else None."""
+    ys, xs = np.nonzero(blob)
+    bx, by = xs.min(), ys.min()
+    bw, bh = xs.max() - bx + 1, ys.max() - by + 1
+    if bh < c.min_height * h or bw > c.max_aspect * bh:
+        return None
+    return bx, by, bw, bh
+
+
 def person_boxes(
     frame: Frame, background: Background, config: DetectConfig = DetectConfig()
 ) -> np.ndarray:
@@ -107,17 +142,10 @@ def person_boxes(
             f"background is {np.shape(background.depth)} but the frame is {depth.shape}"
         )
     h, w = depth.shape
-    c = config
-    fg = np.asarray(
-        _mask_fn(c.depth_abs, c.depth_rel, c.colour_threshold)(colour, depth, background)
-    )
-    fg = fg.astype(np.uint8)
-    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((c.open_px, c.open_px), np.uint8))
-    fg = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, np.ones((c.close_px, c.close_px), np.uint8))
     z = depth.astype(np.float32)
-    min_px = c.min_area * h * w
+    min_px = config.min_area * h * w
     found = []
-    queue = [fg.astype(bool)]  # masks of unexamined blobs (the frame's first)
+    queue = [_foreground(colour, depth, background, config).astype(bool)]  # unexamined masks
     while queue:
         n, labels, stats, _ = cv2.connectedComponentsWithStats(
             queue.pop().astype(np.uint8), connectivity=8
@@ -125,26 +153,13 @@ def person_boxes(
         for k in range(1, n):
             if stats[k, cv2.CC_STAT_AREA] < min_px:
                 continue
-            blob = labels == k
-            measured = blob & (z > 0)
-            if measured.sum() >= 0.2 * blob.sum():  # cut to the main depth
-                med = float(np.median(z[measured]))
-                near = np.abs(z - med) <= max(c.depth_gap, c.depth_gap_rel * med)
-                main = _largest_component(blob & (near | (z == 0)))
-                # The rest: other blobs at other depths. (Each pass takes a non-empty
-                # part of a blob, so the queue runs dry.)
-                if 0 < main.sum() < blob.sum():
-                    queue.append(blob & ~main)
-                    blob = main
+            blob, rest = _main_depth_part(labels == k, z, config)
+            if rest is not None:
+                queue.append(rest)
             area = int(blob.sum())
-            if area < min_px:
-                continue
-            ys, xs = np.nonzero(blob)
-            bx, by = xs.min(), ys.min()
-            bw, bh = xs.max() - bx + 1, ys.max() - by + 1
-            if bh < c.min_height * h or bw > c.max_aspect * bh:
-                continue
-            found.append((area, (bx, by, bw, bh)))
+            box = _person_box(blob, h, config) if area >= min_px else None
+            if box is not None:
+                found.append((area, box))
     found.sort(key=lambda t: -t[0])
     return np.asarray([b for _, b in found], np.float32).reshape(-1, 4)
 

@@ -225,6 +225,7 @@ def propagate(
     """
     if model not in MODELS:
         raise ValueError(f"unknown motion model {model!r}; expected one of {MODELS}")
+    particles, previous = jnp.asarray(particles), jnp.asarray(previous)
     normal, uniform = _draws(rng)
     k_noise, k_guide = jax.random.split(key)
     tau = jnp.asarray(motion.tau, jnp.float32)

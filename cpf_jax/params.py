@@ -101,13 +101,14 @@ def _parts(path: str) -> list[str]:
 
 
 def get(tree: Any, path: str) -> Any:
-    """The field at a dotted ``path`` of a tree of ``NamedTuple`` s (``"motion.tau"``)."""
+    """The field at a dotted ``path`` of a tree of ``NamedTuple`` s (``"motion.tau"``); a
+    path that does not exist is a ``ValueError`` naming the fields there are."""
     node = tree
     for i, name in enumerate(_parts(path)):
         fields = getattr(node, "_fields", ())
         if name not in fields:
             where = ".".join(_parts(path)[:i]) or "the parameters"
-            raise KeyError(f"no parameter {path!r}: {where} has fields {', '.join(fields)}")
+            raise ValueError(f"no parameter {path!r}: {where} has fields {', '.join(fields)}")
         node = getattr(node, name)
     return node
 
@@ -117,7 +118,7 @@ def replace(tree: Any, path: str, value: Any) -> Any:
     names = _parts(path)
     if not names:
         return value
-    get(tree, path)  # a clear KeyError for a path that does not exist
+    get(tree, path)  # a clear ValueError for a path that does not exist
     head, rest = names[0], ".".join(names[1:])
     return tree._replace(**{head: replace(getattr(tree, head), rest, value)})
 
@@ -139,7 +140,7 @@ def paths(prop_tree: Any, trainable_only: bool = False) -> Iterator[str]:
 def _props_at(prop_tree: Any, path: str) -> Any:
     node = get(prop_tree, path)
     if node is None:
-        raise KeyError(f"parameter {path!r} has no properties")
+        raise ValueError(f"parameter {path!r} has no properties")
     return node
 
 
@@ -157,11 +158,13 @@ def _map(index: int, prop_node: Any, value: Any) -> Any:
 
 def _check_trainable(prop_tree: Any, path: str) -> Any:
     node = _props_at(prop_tree, path)
-    for prop in jax.tree_util.tree_leaves(node, is_leaf=_is_prop):
+    for sub in [""] if _is_prop(node) else list(paths(node)):
+        prop = node if not sub else get(node, sub)
+        name = f"{path}.{sub}" if sub else path
         if not _is_prop(prop) or prop.constraint not in BIJECTORS:
-            raise ValueError(f"parameter {path!r}: unknown constraint {prop!r}")
+            raise ValueError(f"parameter {name!r}: unknown constraint {prop!r}")
         if not prop.trainable:
-            raise ValueError(f"parameter {path!r} is not trainable (its Prop says so)")
+            raise ValueError(f"parameter {name!r} is not trainable (its Prop says so)")
     return node
 
 

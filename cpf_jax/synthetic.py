@@ -3,7 +3,7 @@
 ``make_sequence(name, seed=0, n_frames=None, **overrides)`` renders one of
 :data:`SCENARIOS` (or a variation of it: any :class:`ScenarioSpec` field can be overridden)
 and returns a :class:`SyntheticSequence`. Pure NumPy (+ OpenCV for a blur and PNG I/O),
-deterministic per seed, about 100 frames/s on one CPU core.
+deterministic per seed.
 
 Camera and images
 -----------------
@@ -404,8 +404,8 @@ _BOOK_COLOURS = (
 
 
 class _Tex(NamedTuple):
-    smooth: np.ndarray
-    rough: np.ndarray
+    smooth: np.ndarray  # [256, 256] float32 tileable 1/f^2.2 noise
+    rough: np.ndarray  # [256, 256] float32 tileable 1/f^0.8 noise
     hash: np.ndarray  # [4096] uniform(0, 1)
 
 
@@ -418,77 +418,119 @@ def _make_tex(rng: np.random.Generator) -> _Tex:
 
 
 def _aniso(tile, u, v, su, sv):
+    """Nearest look-up of a periodic tile with ``su`` x ``sv`` metres per texel."""
     size = tile.shape[0]
     return tile[np.floor(v / sv).astype(np.int64) % size, np.floor(u / su).astype(np.int64) % size]
 
 
-def _albedo(mat: _Material, uv: np.ndarray, tex: _Tex) -> np.ndarray:
-    """``[n, 3] float32`` albedo (0-255 scale) of ``mat`` at surface coordinates ``uv [2, n]``."""
-    u = uv[0].astype(np.float64)
-    v = uv[1].astype(np.float64)
-    base = np.asarray(mat.rgb, np.float32)[None, :]
+def _base(mat: _Material) -> np.ndarray:
+    return np.asarray(mat.rgb, np.float32)[None, :]
+
+
+def _fabric_albedo(mat: _Material, u, v, tex: _Tex) -> np.ndarray:
+    """Fine weave plus a slow mottle."""
+    st = mat.strength
+    f = (
+        1
+        + st * _aniso(tex.rough, u, v, 0.0035, 0.0035)
+        + 0.7 * st * _aniso(tex.smooth, u, v, 0.04, 0.04)
+    )
+    return _base(mat) * f[:, None]
+
+
+def _hair_albedo(mat: _Material, u, v, tex: _Tex) -> np.ndarray:
+    """Strands: noise stretched along ``v``."""
+    f = 1 + mat.strength * _aniso(tex.rough, u, v, 0.0015, 0.02)
+    return _base(mat) * f[:, None]
+
+
+def _planks_albedo(mat: _Material, u, v, tex: _Tex) -> np.ndarray:
+    """14 cm floor boards in 1.3 m lengths, each with its own shade and grain, dark joints."""
+    st, hsh = mat.strength, tex.hash
+    w = 0.14
+    idx = np.floor(u / w).astype(np.int64)
+    seg = np.floor((v + hsh[idx % 4096] * 2.0) / 1.3).astype(np.int64)
+    shade = 0.85 + 0.3 * hsh[(idx * 7 + seg * 131) % 4096]
+    grain = (
+        1
+        + st * _aniso(tex.rough, u, v, 0.0015, 0.05)
+        + 0.5 * st * _aniso(tex.smooth, u, v, 0.01, 0.2)
+    )
+    gap = (np.mod(u, w) < 0.004) | (np.mod(v + hsh[idx % 4096] * 2.0, 1.3) < 0.004)
+    f = np.where(gap, 0.55, shade * grain)
+    return _base(mat) * f[:, None]
+
+
+def _tiles_albedo(mat: _Material, u, v, tex: _Tex) -> np.ndarray:
+    """Square tiles of side ``mat.scale`` with grout lines."""
+    st, sc, hsh = mat.strength, mat.scale, tex.hash
+    fu, fv = np.mod(u, sc), np.mod(v, sc)
+    idx = (np.floor(u / sc).astype(np.int64) * 31 + np.floor(v / sc).astype(np.int64) * 17) % 4096
+    f = (0.95 + 0.1 * hsh[idx]) * (1 + st * _aniso(tex.rough, u, v, 0.004, 0.004))
+    f = np.where((fu < 0.008) | (fv < 0.008), 0.75, f)
+    return _base(mat) * f[:, None]
+
+
+def _books_albedo(mat: _Material, u, v, tex: _Tex) -> np.ndarray:
+    """Shelves 38 cm apart holding 3.5 cm book spines of palette colours and random heights."""
+    hsh, base = tex.hash, _base(mat)
+    pal = np.asarray(mat.palette, np.float32)
+    shelf_h = 0.38
+    sv = np.mod(v, shelf_h)
+    shelf = np.floor(v / shelf_h).astype(np.int64)
+    bu = u + hsh[(shelf * 13) % 4096]
+    bi = np.floor(bu / 0.035).astype(np.int64) + shelf * 1000
+    hb = hsh[bi % 4096]
+    col = pal[(hb * len(pal)).astype(np.int64) % len(pal)]
+    top = 0.2 + 0.12 * hsh[(bi * 7) % 4096]
+    out = np.where(((sv > 0.03) & (sv < 0.03 + top))[:, None], col, base * 0.35)
+    out = np.where((sv <= 0.03)[:, None], base, out)
+    return out * (1 + 0.5 * mat.strength * _aniso(tex.rough, u, v, 0.004, 0.004))[:, None]
+
+
+def _stripes_albedo(mat: _Material, u, v, tex: _Tex) -> np.ndarray:
+    """Horizontal bands ``mat.scale`` high, cycling through the palette."""
+    pal = np.asarray(mat.palette, np.float32)
+    col = pal[np.floor(v / mat.scale).astype(np.int64) % len(pal)]
+    return col * (1 + mat.strength * _aniso(tex.rough, u, v, 0.004, 0.004))[:, None]
+
+
+def _blotches_albedo(mat: _Material, u, v, tex: _Tex) -> np.ndarray:
+    """Palette colours by level of the smooth noise: irregular patches."""
+    pal = np.asarray(mat.palette, np.float32)
+    q = _aniso(tex.smooth, u, v, mat.scale, mat.scale)
+    k = np.clip(((q + 2.0) / 4.0 * len(pal)).astype(np.int64), 0, len(pal) - 1)
+    return pal[k] * (1 + mat.strength * _aniso(tex.rough, u, v, 0.004, 0.004))[:, None]
+
+
+def _plain_albedo(mat: _Material, u, v, tex: _Tex) -> np.ndarray:
+    """Plain, wall and skin: fine noise at ``mat.scale`` plus a 20x coarser one."""
     st, sc = mat.strength, mat.scale
-    hsh = tex.hash
-    if mat.texture == "fabric":
-        f = (
-            1
-            + st * _aniso(tex.rough, u, v, 0.0035, 0.0035)
-            + 0.7 * st * _aniso(tex.smooth, u, v, 0.04, 0.04)
-        )
-        return base * f[:, None]
-    if mat.texture == "hair":
-        f = 1 + st * _aniso(tex.rough, u, v, 0.0015, 0.02)
-        return base * f[:, None]
-    if mat.texture == "planks":
-        w = 0.14
-        idx = np.floor(u / w).astype(np.int64)
-        seg = np.floor((v + hsh[idx % 4096] * 2.0) / 1.3).astype(np.int64)
-        shade = 0.85 + 0.3 * hsh[(idx * 7 + seg * 131) % 4096]
-        grain = (
-            1
-            + st * _aniso(tex.rough, u, v, 0.0015, 0.05)
-            + 0.5 * st * _aniso(tex.smooth, u, v, 0.01, 0.2)
-        )
-        gap = (np.mod(u, w) < 0.004) | (np.mod(v + hsh[idx % 4096] * 2.0, 1.3) < 0.004)
-        f = np.where(gap, 0.55, shade * grain)
-        return base * f[:, None]
-    if mat.texture == "tiles":
-        fu, fv = np.mod(u, sc), np.mod(v, sc)
-        idx = (
-            np.floor(u / sc).astype(np.int64) * 31 + np.floor(v / sc).astype(np.int64) * 17
-        ) % 4096
-        f = (0.95 + 0.1 * hsh[idx]) * (1 + st * _aniso(tex.rough, u, v, 0.004, 0.004))
-        f = np.where((fu < 0.008) | (fv < 0.008), 0.75, f)
-        return base * f[:, None]
-    if mat.texture == "books":
-        pal = np.asarray(mat.palette, np.float32)
-        shelf_h = 0.38
-        sv = np.mod(v, shelf_h)
-        shelf = np.floor(v / shelf_h).astype(np.int64)
-        bu = u + hsh[(shelf * 13) % 4096]
-        bi = np.floor(bu / 0.035).astype(np.int64) + shelf * 1000
-        hb = hsh[bi % 4096]
-        col = pal[(hb * len(pal)).astype(np.int64) % len(pal)]
-        top = 0.2 + 0.12 * hsh[(bi * 7) % 4096]
-        out = np.where(((sv > 0.03) & (sv < 0.03 + top))[:, None], col, base * 0.35)
-        out = np.where((sv <= 0.03)[:, None], base, out)
-        return out * (1 + 0.5 * st * _aniso(tex.rough, u, v, 0.004, 0.004))[:, None]
-    if mat.texture == "stripes":
-        pal = np.asarray(mat.palette, np.float32)
-        col = pal[np.floor(v / sc).astype(np.int64) % len(pal)]
-        return col * (1 + st * _aniso(tex.rough, u, v, 0.004, 0.004))[:, None]
-    if mat.texture == "blotches":
-        pal = np.asarray(mat.palette, np.float32)
-        q = _aniso(tex.smooth, u, v, sc, sc)
-        k = np.clip(((q + 2.0) / 4.0 * len(pal)).astype(np.int64), 0, len(pal) - 1)
-        return pal[k] * (1 + st * _aniso(tex.rough, u, v, 0.004, 0.004))[:, None]
-    # plain / wall / skin
     f = (
         1
         + st * _aniso(tex.rough, u, v, sc, sc)
         + 0.5 * st * _aniso(tex.smooth, u, v, sc * 20, sc * 20)
     )
-    return base * f[:, None]
+    return _base(mat) * f[:, None]
+
+
+_TEXTURES = {
+    "fabric": _fabric_albedo,
+    "hair": _hair_albedo,
+    "planks": _planks_albedo,
+    "tiles": _tiles_albedo,
+    "books": _books_albedo,
+    "stripes": _stripes_albedo,
+    "blotches": _blotches_albedo,
+}
+
+
+def _albedo(mat: _Material, uv: np.ndarray, tex: _Tex) -> np.ndarray:
+    """``[n, 3] float32`` albedo (0-255 scale) of ``mat`` at surface coordinates ``uv [2, n]``
+    (m); any texture name without a pattern of its own is plain."""
+    u = uv[0].astype(np.float64)
+    v = uv[1].astype(np.float64)
+    return _TEXTURES.get(mat.texture, _plain_albedo)(mat, u, v, tex)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -518,55 +560,137 @@ def _camera(height_m: float, pitch_deg: float) -> _Camera:
 _TAN_HALF_FOV = min(KINECT_V2_DEPTH.cx, WIDTH - 1 - KINECT_V2_DEPTH.cx) / KINECT_V2_DEPTH.fx
 
 
-def _plan_path(spec: ScenarioSpec, rng: np.random.Generator, duration_s: float):
-    """Waypoints (x, z), corner radius, start offset, the in-view walk length (inf: the
-    pace loop repeats) and the arc length that covers every place the walk visits."""
-    v = spec.speed_mps
-    mirror = rng.choice([-1.0, 1.0])
-    if spec.path == "pace":
-        r = spec.lane_gap_m / 2
-        d = spec.distance_m + rng.uniform(-0.1, 0.1)
-        zf, zn = d + r, d - r
-        span = max(zn * _TAN_HALF_FOV - 0.6, 0.4)
-        loop = [(-span, zf), (span, zf), (span, zn), (-span, zn)]
-        need = v * duration_s + 4 * span
-        n_loops = int(np.ceil(need / (4 * span + 2 * np.pi * r))) + 1
-        wps = [loop[i % 4] for i in range(4 * n_loops + 1)]
-        wps = np.array(wps) * np.array([mirror, 1.0])
-        s0 = rng.uniform(0.0, 0.5 * span)
-        return wps, r, s0, np.inf, s0 + body.planned_length(wps[:6], r)
-    if spec.path in ("towards", "away"):
-        x0 = rng.uniform(-0.4, 0.4)
-        x1 = x0 + rng.uniform(-0.4, 0.4)
-        wps = np.array([(x0, spec.far_m), (x1, spec.near_m)])
-        if spec.path == "away":
-            wps = wps[::-1]
-        length = body.planned_length(wps, 0.0)
-        return wps, 0.0, 0.0, length, length
-    if spec.path == "turn":
-        z_across = spec.far_m - 0.4
-        xs = -(z_across * _TAN_HALF_FOV - 0.8)
-        xc = rng.uniform(0.1, 0.5)
-        wps = np.array([(xs, z_across), (xc, z_across), (xc, spec.near_m + 0.2)])
-        wps = wps * np.array([mirror, 1.0])
-        length = body.planned_length(wps, 0.5)
-        return wps, 0.5, 0.0, length, length
-    if spec.path == "away_back":
-        r = 0.3
-        x0 = rng.uniform(-0.2, 0.0)
-        wps = np.array(
-            [
-                (x0, spec.near_m),
-                (x0, spec.far_m),
-                (x0 + 2 * r, spec.far_m),
-                (x0 + 2 * r, spec.near_m),
-            ]
-        )
-        length = body.planned_length(wps, r)
-        return wps, r, 0.0, length, length
-    raise ValueError(
-        f"unknown path {spec.path!r}; expected 'pace', 'towards', 'away', 'turn' or 'away_back'"
+class _PathPlan(NamedTuple):
+    waypoints: np.ndarray  # [K, 2] (x, z) floor points, m
+    radius: float  # corner radius, m
+    s0: float  # arc length walked before frame 0, m
+    walk_length: float  # in-view walk length, m; inf: the pace loop repeats
+    extent_length: float  # arc length that covers every place the walk visits, m
+
+
+def _pace_path(spec: ScenarioSpec, rng, duration_s: float, mirror: float) -> _PathPlan:
+    """Stadium loop of two lanes around ``distance_m``, repeated as often as the sequence
+    needs; it starts at a random point of the far lane."""
+    r = spec.lane_gap_m / 2
+    d = spec.distance_m + rng.uniform(-0.1, 0.1)
+    zf, zn = d + r, d - r
+    span = max(zn * _TAN_HALF_FOV - 0.6, 0.4)
+    loop = [(-span, zf), (span, zf), (span, zn), (-span, zn)]
+    need = spec.speed_mps * duration_s + 4 * span
+    n_loops = int(np.ceil(need / (4 * span + 2 * np.pi * r))) + 1
+    wps = [loop[i % 4] for i in range(4 * n_loops + 1)]
+    wps = np.array(wps) * np.array([mirror, 1.0])
+    s0 = rng.uniform(0.0, 0.5 * span)
+    return _PathPlan(wps, r, s0, np.inf, s0 + body.planned_length(wps[:6], r))
+
+
+def _straight_path(spec: ScenarioSpec, rng, duration_s: float, mirror: float) -> _PathPlan:
+    """``towards``: from ``far_m`` to ``near_m`` with a little sideways drift; ``away``: back."""
+    x0 = rng.uniform(-0.4, 0.4)
+    x1 = x0 + rng.uniform(-0.4, 0.4)
+    wps = np.array([(x0, spec.far_m), (x1, spec.near_m)])
+    if spec.path == "away":
+        wps = wps[::-1]
+    length = body.planned_length(wps, 0.0)
+    return _PathPlan(wps, 0.0, 0.0, length, length)
+
+
+def _turn_path(spec: ScenarioSpec, rng, duration_s: float, mirror: float) -> _PathPlan:
+    """Across the view at ``far_m - 0.4``, then a 90 degree turn towards the camera."""
+    z_across = spec.far_m - 0.4
+    xs = -(z_across * _TAN_HALF_FOV - 0.8)
+    xc = rng.uniform(0.1, 0.5)
+    wps = np.array([(xs, z_across), (xc, z_across), (xc, spec.near_m + 0.2)])
+    wps = wps * np.array([mirror, 1.0])
+    length = body.planned_length(wps, 0.5)
+    return _PathPlan(wps, 0.5, 0.0, length, length)
+
+
+def _away_back_path(spec: ScenarioSpec, rng, duration_s: float, mirror: float) -> _PathPlan:
+    """Away from ``near_m`` to ``far_m``, a U-turn of radius 0.3 m, and back."""
+    r = 0.3
+    x0 = rng.uniform(-0.2, 0.0)
+    wps = np.array(
+        [
+            (x0, spec.near_m),
+            (x0, spec.far_m),
+            (x0 + 2 * r, spec.far_m),
+            (x0 + 2 * r, spec.near_m),
+        ]
     )
+    length = body.planned_length(wps, r)
+    return _PathPlan(wps, r, 0.0, length, length)
+
+
+_PATHS = {
+    "pace": _pace_path,
+    "towards": _straight_path,
+    "away": _straight_path,
+    "turn": _turn_path,
+    "away_back": _away_back_path,
+}
+
+
+def _plan_path(spec: ScenarioSpec, rng: np.random.Generator, duration_s: float) -> _PathPlan:
+    """The walk of ``spec.path`` for a sequence of ``duration_s``. The mirror draw comes
+    first for every path, so each path consumes the layout stream the same way."""
+    mirror = rng.choice([-1.0, 1.0])
+    if spec.path not in _PATHS:
+        raise ValueError(
+            f"unknown path {spec.path!r}; expected 'pace', 'towards', 'away', 'turn' or 'away_back'"
+        )
+    return _PATHS[spec.path](spec, rng, duration_s, mirror)
+
+
+class _KeepOut(NamedTuple):
+    """The walker's floor region and angular range, which furniture must neither enter
+    nor hide: ``x0..x1``, ``z0..z1`` in metres and ``amin..amax`` in ``x / z``."""
+
+    x0: float
+    x1: float
+    z0: float
+    z1: float
+    amin: float
+    amax: float
+
+
+def _keep_out(path: body.Path, extent_length: float) -> _KeepOut:
+    """Keep-out region of the planned walk; it does not depend on the sequence length, so
+    frame ``t`` of a seed never depends on ``n_frames``."""
+    walked = path.xz[path.s <= extent_length + 0.1]
+    xs, zs = walked[:, 0], walked[:, 1]
+    # The body reaches ~0.45 m from the path (stride, arm swing) and ~0.6 m sideways in view.
+    amin = float(np.min((xs - 0.6) / zs))
+    amax = float(np.max((xs + 0.6) / zs))
+    return _KeepOut(xs.min() - 0.45, xs.max() + 0.45, zs.min() - 0.45, zs.max() + 0.45, amin, amax)
+
+
+class _Walk(NamedTuple):
+    n_frames: int
+    t_s: np.ndarray  # [T] frame times, s
+    root_xz: np.ndarray  # [T, 2] floor point under the pelvis, m
+    heading_xz: np.ndarray  # [T, 2] unit walking direction
+    phase: np.ndarray  # [T] gait phase, rad
+    plan: _PathPlan
+    keep_out: _KeepOut
+
+
+def _walk(spec: ScenarioSpec, rng: np.random.Generator, n_frames: int | None, fps: float) -> _Walk:
+    """Plan the path, clip the default length of a single pass to the walk, and sample the
+    walker's position, heading and gait phase at every frame."""
+    n_req = int(n_frames) if n_frames is not None else int(spec.n_frames)
+    plan = _plan_path(spec, rng, n_req / fps)
+    if n_frames is None and np.isfinite(plan.walk_length):
+        n_req = min(n_req, int(np.floor(plan.walk_length / spec.speed_mps * fps)) + 1)
+    T = max(n_req, 1)
+    path = body.fillet_path(plan.waypoints, plan.radius)
+    t_s = np.arange(T) / fps
+    s = plan.s0 + spec.speed_mps * t_s
+    root_xz, heading_xz = body.sample_path(path, s)
+    step = body.gait_parameters(spec.speed_mps)["step"]
+    phase0 = rng.uniform(0, 2 * np.pi)
+    phase = phase0 + np.pi * (s - plan.s0) / step
+    return _Walk(T, t_s, root_xz, heading_xz, phase, plan, _keep_out(path, plan.extent_length))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -579,167 +703,251 @@ class _Scene(NamedTuple):
     floor_index: int
 
 
-def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep_out) -> _Scene:
-    """Room, furniture and posters. ``keep_out = (x0, x1, z0, z1, amin, amax)``: the
-    person's floor region and angular range (x/z), which furniture must neither enter nor
-    hide."""
-    mats: list[_Material] = []
-    prims: list[rnd.Prim] = []
+class _SceneBuilder:
+    """Collects the static boxes (object 0) and their materials; boxes are placed by world
+    centre and size (m) and stored in camera coordinates."""
 
-    def mat(m: _Material) -> int:
-        mats.append(m)
-        return len(mats) - 1
+    def __init__(self, cam: _Camera) -> None:
+        self.cam = cam
+        self.prims: list[rnd.Prim] = []
+        self.materials: list[_Material] = []
 
-    def add_box(centre, size, m):
-        prims.append(rnd.box(cam.to_cam(centre), cam.R, np.asarray(size) / 2, 0, m))
+    def material(self, m: _Material) -> int:
+        self.materials.append(m)
+        return len(self.materials) - 1
 
-    D, W2, CEIL = spec.room_depth_m, spec.room_half_width_m, 2.7
-    floor_rgb = _FURNITURE_COLOURS[rng.choice([0, 2])] if rng.uniform() < 0.6 else (150, 150, 145)
-    floor_tex = "planks" if floor_rgb != (150, 150, 145) else "tiles"
-    m_floor = mat(_Material(floor_rgb, _ir(floor_rgb), floor_tex, 0.45, 0.12))
-    add_box((0, -0.05, D / 2), (2 * W2 + 1, 0.1, D + 1), m_floor)
-    floor_index = len(prims) - 1
+    def box(self, centre, size, material: int) -> None:
+        cam = self.cam
+        self.prims.append(rnd.box(cam.to_cam(centre), cam.R, np.asarray(size) / 2, 0, material))
+
+
+_CEILING_M = 2.7
+_TILE_GREY = (150, 150, 145)
+
+
+def _room(b: _SceneBuilder, spec: ScenarioSpec, rng: np.random.Generator) -> int:
+    """Floor (planks or tiles), back and side walls, ceiling, lamps and a skirting board;
+    returns the floor's primitive index."""
+    D, W2, CEIL = spec.room_depth_m, spec.room_half_width_m, _CEILING_M
+    floor_rgb = _FURNITURE_COLOURS[rng.choice([0, 2])] if rng.uniform() < 0.6 else _TILE_GREY
+    floor_tex = "planks" if floor_rgb != _TILE_GREY else "tiles"
+    m_floor = b.material(_Material(floor_rgb, _ir(floor_rgb), floor_tex, 0.45, 0.12))
+    b.box((0, -0.05, D / 2), (2 * W2 + 1, 0.1, D + 1), m_floor)
+    floor_index = len(b.prims) - 1
     wall_rgb = tuple(
         int(c) for c in rng.choice([(225, 222, 210), (205, 210, 200), (215, 205, 185)])
     )
-    m_wall = mat(_Material(wall_rgb, _ir(wall_rgb), "wall", 0.006, 0.04))
-    add_box((0, CEIL / 2, D + 0.05), (2 * W2 + 1, CEIL + 0.2, 0.1), m_wall)
+    m_wall = b.material(_Material(wall_rgb, _ir(wall_rgb), "wall", 0.006, 0.04))
+    b.box((0, CEIL / 2, D + 0.05), (2 * W2 + 1, CEIL + 0.2, 0.1), m_wall)
     side_rgb = tuple(int(0.93 * c) for c in wall_rgb)
-    m_side = mat(_Material(side_rgb, _ir(side_rgb), "wall", 0.006, 0.04))
-    add_box((-W2 - 0.05, CEIL / 2, D / 2), (0.1, CEIL + 0.2, D + 1), m_side)
-    add_box((W2 + 0.05, CEIL / 2, D / 2), (0.1, CEIL + 0.2, D + 1), m_side)
-    m_ceil = mat(_Material((235, 235, 235), 0.7, "wall", 0.006, 0.03))
-    add_box((0, CEIL + 0.05, D / 2), (2 * W2 + 1, 0.1, D + 1), m_ceil)
-    m_lamp = mat(_Material((255, 252, 240), 0.7, "plain", 0.01, 0.0, emissive=True))
+    m_side = b.material(_Material(side_rgb, _ir(side_rgb), "wall", 0.006, 0.04))
+    b.box((-W2 - 0.05, CEIL / 2, D / 2), (0.1, CEIL + 0.2, D + 1), m_side)
+    b.box((W2 + 0.05, CEIL / 2, D / 2), (0.1, CEIL + 0.2, D + 1), m_side)
+    m_ceil = b.material(_Material((235, 235, 235), 0.7, "wall", 0.006, 0.03))
+    b.box((0, CEIL + 0.05, D / 2), (2 * W2 + 1, 0.1, D + 1), m_ceil)
+    m_lamp = b.material(_Material((255, 252, 240), 0.7, "plain", 0.01, 0.0, emissive=True))
     for lz in np.arange(1.5, D, 1.6):
-        add_box((0, CEIL - 0.02, lz), (1.2, 0.04, 0.3), m_lamp)
-    # Skirting board along the back wall.
-    m_skirt = mat(_Material((245, 245, 240), 0.7, "plain", 0.01, 0.02))
-    add_box((0, 0.05, D - 0.01), (2 * W2, 0.1, 0.02), m_skirt)
+        b.box((0, CEIL - 0.02, lz), (1.2, 0.04, 0.3), m_lamp)
+    m_skirt = b.material(_Material((245, 245, 240), 0.7, "plain", 0.01, 0.02))
+    b.box((0, 0.05, D - 0.01), (2 * W2, 0.1, 0.02), m_skirt)
+    return floor_index
 
-    cl = spec.clothing
-    x0, x1, z0, z1, amin, amax = keep_out
 
-    # Unmatched clutter avoids the clothing's colours, so that ``clutter_match`` alone
-    # decides how much of the scene resembles the person.
+def _clutter_palettes(cl: Clothing) -> tuple[list, tuple]:
+    """Furniture and book colours unlike the clothing, so that ``clutter_match`` alone
+    decides how much of the scene resembles the person."""
     clothes = (cl.shirt, cl.trousers)
     furniture = [c for c in _FURNITURE_COLOURS if not any(_alike(c, k) for k in clothes)]
     books = tuple(c for c in _BOOK_COLOURS if not any(_alike(c, k) for k in clothes))
     furniture = furniture or list(_FURNITURE_COLOURS)
     books = books if len(books) >= 4 else tuple(_BOOK_COLOURS)
+    return furniture, books
 
-    def colour_for_clutter():
-        matched = rng.uniform() < spec.clutter_match
-        target = cl.shirt if rng.uniform() < 0.7 else cl.trousers
-        similar = _similar_colour(rng, target, spec.distractor_similarity)
-        plain = furniture[rng.integers(len(furniture))]
-        return (similar if matched else plain), matched
 
-    def behind_path(a_lo, a_hi, za):
-        return za >= z1 - 0.1 and a_hi > amin and a_lo < amax
+def _clutter_colour(rng: np.random.Generator, spec: ScenarioSpec, furniture: list):
+    """``(rgb, matched)``: with probability ``clutter_match`` a colour similar to the shirt
+    (or, less often, the trousers), else a plain furniture colour. Every draw is made
+    whatever the knobs, so the layout does not depend on them."""
+    cl = spec.clothing
+    matched = rng.uniform() < spec.clutter_match
+    target = cl.shirt if rng.uniform() < 0.7 else cl.trousers
+    similar = _similar_colour(rng, target, spec.distractor_similarity)
+    plain = furniture[rng.integers(len(furniture))]
+    return (similar if matched else plain), matched
 
-    def allowed(cx, cz, w, d, top=0.0):
-        xa, xb, za, zb = cx - w / 2, cx + w / 2, cz - d / 2, cz + d / 2
-        if xa < -W2 or xb > W2 or zb > D or za < 0.8:
-            return False
-        if xb > x0 and xa < x1 and zb > z0 and za < z1:
-            return False  # on the walking area
-        corners_a = [xa / za, xb / za, xa / zb, xb / zb]
-        a_lo, a_hi = min(corners_a), max(corners_a)
-        if a_hi < -_TAN_HALF_FOV or a_lo > _TAN_HALF_FOV:
-            return False  # out of view: pointless
-        if za < z1 + 0.1 and a_hi > amin and a_lo < amax:
-            return False  # would hide the person
-        if spec.backdrop == "low" and top > spec.backdrop_height_m and behind_path(a_lo, a_hi, za):
-            return False  # tall clutter right behind the walking path
-        return True
 
-    # Posters on the back wall (no depth of their own: 1 cm thick).
+def _behind_path(keep: _KeepOut, a_lo: float, a_hi: float, za: float) -> bool:
+    """Whether something at depth ``za`` spanning ``a_lo..a_hi`` (x / z) is seen right
+    behind the walking path."""
+    return za >= keep.z1 - 0.1 and a_hi > keep.amin and a_lo < keep.amax
+
+
+def _placement_allowed(
+    spec: ScenarioSpec, keep: _KeepOut, cx: float, cz: float, w: float, d: float, top: float
+) -> bool:
+    """Whether a ``w x d`` footprint centred at ``(cx, cz)`` reaching up to ``top`` fits in
+    the room, is in view, and neither stands on the walk nor hides the walker."""
+    D, W2 = spec.room_depth_m, spec.room_half_width_m
+    xa, xb, za, zb = cx - w / 2, cx + w / 2, cz - d / 2, cz + d / 2
+    if xa < -W2 or xb > W2 or zb > D or za < 0.8:
+        return False
+    if xb > keep.x0 and xa < keep.x1 and zb > keep.z0 and za < keep.z1:
+        return False  # on the walking area
+    corners_a = [xa / za, xb / za, xa / zb, xb / zb]
+    a_lo, a_hi = min(corners_a), max(corners_a)
+    if a_hi < -_TAN_HALF_FOV or a_lo > _TAN_HALF_FOV:
+        return False  # out of view: pointless
+    if za < keep.z1 + 0.1 and a_hi > keep.amin and a_lo < keep.amax:
+        return False  # would hide the person
+    if (
+        spec.backdrop == "low"
+        and top > spec.backdrop_height_m
+        and _behind_path(keep, a_lo, a_hi, za)
+    ):
+        return False  # tall clutter right behind the walking path
+    return True
+
+
+def _posters(
+    b: _SceneBuilder, spec: ScenarioSpec, rng: np.random.Generator, keep: _KeepOut, books: tuple
+) -> None:
+    """Striped or blotchy posters on the back wall (1.2 cm thick: no depth of their own);
+    with ``backdrop="low"`` none behind the walking path."""
+    D, W2 = spec.room_depth_m, spec.room_half_width_m
     palette_pool = list(books)
     for _ in range(1 + spec.clutter // 3):
         w, h = rng.uniform(0.4, 1.0), rng.uniform(0.5, 1.0)
         cx = rng.uniform(-W2 + w, W2 - w)
         if spec.backdrop == "low":
             for _attempt in range(30):
-                if not behind_path((cx - w / 2) / D, (cx + w / 2) / D, D):
+                if not _behind_path(keep, (cx - w / 2) / D, (cx + w / 2) / D, D):
                     break
                 cx = rng.uniform(-W2 + w, W2 - w)
             else:
                 continue
         pal = tuple(palette_pool[i] for i in rng.choice(len(palette_pool), 4, replace=False))
-        similar = _similar_colour(rng, cl.shirt, spec.distractor_similarity)
-        if rng.uniform() < spec.clutter_match:  # (same draws whatever the knobs: same layout)
+        similar = _similar_colour(rng, spec.clothing.shirt, spec.distractor_similarity)
+        if rng.uniform() < spec.clutter_match:
             pal = (similar,) + pal[1:]
         kind = "stripes" if rng.uniform() < 0.4 else "blotches"
-        m = mat(_Material(pal[0], 0.5, kind, rng.uniform(0.04, 0.12), 0.05, pal))
-        add_box((cx, rng.uniform(1.1, 1.8), D - 0.006), (w, h, 0.012), m)
+        m = b.material(_Material(pal[0], 0.5, kind, rng.uniform(0.04, 0.12), 0.05, pal))
+        b.box((cx, rng.uniform(1.1, 1.8), D - 0.006), (w, h, 0.012), m)
 
-    # Furniture on the floor.
+
+def _furniture_size(rng: np.random.Generator, kind: str) -> tuple[float, float, float]:
+    """Width (x), height and depth (z) of one piece of furniture, metres."""
+    if kind == "shelf":
+        return rng.uniform(0.6, 1.2), rng.uniform(1.2, 2.0), rng.uniform(0.3, 0.4)
+    if kind == "cabinet":
+        return rng.uniform(0.5, 1.2), rng.uniform(0.7, 1.3), rng.uniform(0.4, 0.6)
+    if kind == "table":
+        return rng.uniform(0.8, 1.6), rng.uniform(0.7, 0.78), rng.uniform(0.6, 0.9)
+    if kind == "wall_shelf":
+        return rng.uniform(0.6, 1.4), rng.uniform(0.35, 0.8), 0.25
+    if kind == "crate":
+        return rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.6)
+    return 0.45, 0.9, 0.45  # chair
+
+
+def _place_furniture(rng: np.random.Generator, spec: ScenarioSpec, keep: _KeepOut, kind: str):
+    """``(w, h, d, cx, cz)`` of a piece of ``kind`` at an allowed place, drawn afresh up to
+    60 times; None when no draw is allowed. Shelves and cabinets mostly stand against the
+    back wall, wall shelves always hang there."""
+    D, W2 = spec.room_depth_m, spec.room_half_width_m
+    for _attempt in range(60):
+        w, h, d = _furniture_size(rng, kind)
+        against_wall = kind == "wall_shelf" or (
+            kind in ("shelf", "cabinet") and rng.uniform() < 0.7
+        )
+        cz = D - d / 2 - 0.01 if against_wall else rng.uniform(1.0, D - d / 2)
+        cx = rng.uniform(-W2 + w / 2, W2 - w / 2)
+        top = 2.5 if kind == "wall_shelf" else h
+        if _placement_allowed(spec, keep, cx, cz, w, d, top):
+            return w, h, d, cx, cz
+    return None
+
+
+def _add_table_or_chair(b: _SceneBuilder, rng, kind: str, placed, rgb) -> None:
+    """A 4 cm top on four legs; a chair has a 46 cm seat and a backrest."""
+    w, h, d, cx, cz = placed
+    top = 0.04
+    m = b.material(_Material(rgb, _ir(rgb), "plain", 0.004, 0.06))
+    leg_rgb = (60, 60, 62) if rng.uniform() < 0.5 else rgb
+    m_leg = b.material(_Material(leg_rgb, _ir(leg_rgb), "plain", 0.004, 0.03))
+    seat_h = h if kind == "table" else 0.46
+    b.box((cx, seat_h - top / 2, cz), (w, top, d), m)
+    for sx in (-1, 1):
+        for sz in (-1, 1):
+            b.box(
+                (cx + sx * (w / 2 - 0.04), (seat_h - top) / 2, cz + sz * (d / 2 - 0.04)),
+                (0.04, seat_h - top, 0.04),
+                m_leg,
+            )
+    if kind == "chair":
+        b.box((cx, seat_h + 0.22, cz + d / 2 - 0.02), (w, 0.44, 0.03), m)
+
+
+def _add_furniture(b: _SceneBuilder, rng, kind: str, placed, rgb, matched: bool, books) -> None:
+    """Boxes of one piece: a bookshelf (matched ones hold books of its colour too), a
+    cabinet, a crate, or a table or chair."""
+    w, h, d, cx, cz = placed
+    if kind in ("shelf", "wall_shelf"):
+        pal = books + ((rgb, rgb) if matched else ())
+        frame_rgb = rgb if matched else _FURNITURE_COLOURS[rng.choice([0, 1, 3, 6])]
+        m_frame = b.material(_Material(frame_rgb, _ir(frame_rgb), "books", 0.01, 0.06, pal))
+        y0 = rng.uniform(1.1, 2.5 - h) if kind == "wall_shelf" else 0.0
+        b.box((cx, y0 + h / 2, cz), (w, h, d), m_frame)
+    elif kind == "cabinet":
+        m = b.material(_Material(rgb, _ir(rgb), "plain", 0.005, 0.05))
+        b.box((cx, h / 2, cz), (w, h, d), m)
+    elif kind == "crate":
+        m = b.material(_Material(rgb, _ir(rgb), "plain", 0.004, 0.08))
+        b.box((cx, h / 2, cz), (w, h, d), m)
+    else:
+        _add_table_or_chair(b, rng, kind, placed, rgb)
+
+
+def _furniture(
+    b: _SceneBuilder,
+    spec: ScenarioSpec,
+    rng: np.random.Generator,
+    keep: _KeepOut,
+    furniture: list,
+    books: tuple,
+) -> None:
+    """``spec.clutter`` pieces of furniture; a piece that finds no allowed place is left out."""
     for _ in range(spec.clutter):
         kind = rng.choice(
             ["shelf", "cabinet", "table", "crate", "chair", "wall_shelf"],
             p=[0.2, 0.2, 0.15, 0.15, 0.1, 0.2],
         )
-        for _attempt in range(60):
-            if kind == "shelf":
-                w, h, d = rng.uniform(0.6, 1.2), rng.uniform(1.2, 2.0), rng.uniform(0.3, 0.4)
-            elif kind == "cabinet":
-                w, h, d = rng.uniform(0.5, 1.2), rng.uniform(0.7, 1.3), rng.uniform(0.4, 0.6)
-            elif kind == "table":
-                w, h, d = rng.uniform(0.8, 1.6), rng.uniform(0.7, 0.78), rng.uniform(0.6, 0.9)
-            elif kind == "wall_shelf":
-                w, h, d = rng.uniform(0.6, 1.4), rng.uniform(0.35, 0.8), 0.25
-            elif kind == "crate":
-                w, h, d = rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.6)
-            else:
-                w, h, d = 0.45, 0.9, 0.45
-            against_wall = kind == "wall_shelf" or (
-                kind in ("shelf", "cabinet") and rng.uniform() < 0.7
-            )
-            cz = D - d / 2 - 0.01 if against_wall else rng.uniform(1.0, D - d / 2)
-            cx = rng.uniform(-W2 + w / 2, W2 - w / 2)
-            top = 2.5 if kind == "wall_shelf" else h
-            if allowed(cx, cz, w, d, top):
-                break
-        else:
+        placed = _place_furniture(rng, spec, keep, kind)
+        if placed is None:
             continue
-        rgb, matched = colour_for_clutter()
-        if kind in ("shelf", "wall_shelf"):
-            pal = books + ((rgb, rgb) if matched else ())
-            frame_rgb = rgb if matched else _FURNITURE_COLOURS[rng.choice([0, 1, 3, 6])]
-            m_frame = mat(_Material(frame_rgb, _ir(frame_rgb), "books", 0.01, 0.06, pal))
-            y0 = rng.uniform(1.1, 2.5 - h) if kind == "wall_shelf" else 0.0
-            add_box((cx, y0 + h / 2, cz), (w, h, d), m_frame)
-        elif kind == "cabinet":
-            m = mat(_Material(rgb, _ir(rgb), "plain", 0.005, 0.05))
-            add_box((cx, h / 2, cz), (w, h, d), m)
-        elif kind == "crate":
-            m = mat(_Material(rgb, _ir(rgb), "plain", 0.004, 0.08))
-            add_box((cx, h / 2, cz), (w, h, d), m)
-        else:
-            top = 0.04
-            m = mat(_Material(rgb, _ir(rgb), "plain", 0.004, 0.06))
-            leg_rgb = (60, 60, 62) if rng.uniform() < 0.5 else rgb
-            m_leg = mat(_Material(leg_rgb, _ir(leg_rgb), "plain", 0.004, 0.03))
-            seat_h = h if kind == "table" else 0.46
-            add_box((cx, seat_h - top / 2, cz), (w, top, d), m)
-            for sx in (-1, 1):
-                for sz in (-1, 1):
-                    add_box(
-                        (cx + sx * (w / 2 - 0.04), (seat_h - top) / 2, cz + sz * (d / 2 - 0.04)),
-                        (0.04, seat_h - top, 0.04),
-                        m_leg,
-                    )
-            if kind == "chair":
-                add_box((cx, seat_h + 0.22, cz + d / 2 - 0.02), (w, 0.44, 0.03), m)
+        rgb, matched = _clutter_colour(rng, spec, furniture)
+        _add_furniture(b, rng, kind, placed, rgb, matched, books)
 
+
+def _distractor_panel(
+    b: _SceneBuilder, spec: ScenarioSpec, rng: np.random.Generator, keep: _KeepOut
+) -> None:
+    """A large shirt-coloured panel standing just behind the far lane, centred on the walk."""
+    rgb = _similar_colour(rng, spec.clothing.shirt, spec.distractor_similarity)
+    m = b.material(_Material(rgb, _ir(rgb), "plain", 0.004, 0.06))
+    zc = min(keep.z1 + 0.1, spec.room_depth_m - 0.05)
+    b.box((0.5 * (keep.x0 + keep.x1) + rng.uniform(-0.2, 0.2), 0.85, zc), (1.2, 1.7, 0.04), m)
+
+
+def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep: _KeepOut) -> _Scene:
+    """Room, posters, furniture and the optional distractor, kept clear of the walk."""
+    b = _SceneBuilder(cam)
+    floor_index = _room(b, spec, rng)
+    furniture, books = _clutter_palettes(spec.clothing)
+    _posters(b, spec, rng, keep, books)
+    _furniture(b, spec, rng, keep, furniture, books)
     if spec.distractor:
-        # A large shirt-coloured panel standing just behind the far lane, centred on the walk.
-        rgb = _similar_colour(rng, cl.shirt, spec.distractor_similarity)
-        m = mat(_Material(rgb, _ir(rgb), "plain", 0.004, 0.06))
-        zc = min(z1 + 0.1, D - 0.05)
-        add_box((0.5 * (x0 + x1) + rng.uniform(-0.2, 0.2), 0.85, zc), (1.2, 1.7, 0.04), m)
-    return _Scene(prims, mats, floor_index)
+        _distractor_panel(b, spec, rng, keep)
+    return _Scene(b.prims, b.materials, floor_index)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -936,6 +1144,582 @@ def _illumination_gain(spec: ScenarioSpec, n: int, fps: float) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------
+# The fixed stage: rays, light, the empty room rendered once, noise banks.
+
+
+class _Rays(NamedTuple):
+    xy: np.ndarray  # [2, H, W] float64 X and Y of the pixel rays (Z = 1)
+    rx: np.ndarray  # [H, W] float32 X
+    ry: np.ndarray  # [H, W] float32 Y
+    norm: np.ndarray  # [H, W] float32 ray length
+
+
+def _rays(intr: Intrinsics) -> _Rays:
+    rays = rnd.pixel_rays(HEIGHT, WIDTH, intr.fx, intr.fy, intr.cx, intr.cy)
+    rx, ry = rays[0].astype(np.float32), rays[1].astype(np.float32)
+    return _Rays(rays, rx, ry, np.sqrt(rx * rx + ry * ry + 1))
+
+
+def _light(cam: _Camera) -> np.ndarray:
+    """``[3] float32`` unit direction towards the light (above, left, behind the camera)."""
+    light = cam.dir_to_cam(np.array([-0.35, 1.0, -0.6]) / np.linalg.norm([-0.35, 1.0, -0.6]))
+    return light.astype(np.float32)
+
+
+class _Background(NamedTuple):
+    """The empty room without sensor noise, per pixel ``[H, W]``."""
+
+    gbuf: rnd.GBuffer  # ray-cast buffers (z in m, inf = nothing)
+    lin: np.ndarray  # [H, W, 3] float32 shaded colour, 0-255 scale
+    blur: np.ndarray  # [H, W, 3] float32 ``lin`` after the lens blur
+    u8: np.ndarray  # [H, W, 3] uint8 ``blur`` rounded
+    z_m: np.ndarray  # float32 depth, m, 0 = no surface
+    z_mm: np.ndarray  # float32 depth, mm
+    cos: np.ndarray  # cosine between ray and surface normal
+    sigma: np.ndarray  # float32 axial noise std, mm
+    missing: np.ndarray  # bool deterministic dropouts
+    p_amp: np.ndarray  # float32 dropout probability of a weak infrared return
+    cand_r: np.ndarray  # [n] rows of the pixels that may drop out at random
+    cand_c: np.ndarray  # [n] their columns
+    cand_amp: np.ndarray  # [n] their weak-return dropout probabilities
+    cand_edge: np.ndarray  # [n] their depth-edge dropout probabilities
+
+
+def _shade_room(scene: _Scene, tex: _Tex, light: np.ndarray, bg: rnd.GBuffer):
+    """``([H, W, 3] float32 shaded colour, [H, W] float32 infrared reflectivity)``."""
+    bg_mat = np.array([p.material for p in scene.prims])
+    lin = np.zeros((HEIGHT, WIDTH, 3), np.float32)
+    ir = np.zeros((HEIGHT, WIDTH), np.float32)
+    for i in np.unique(bg.pid[bg.pid >= 0]):
+        sel = bg.pid == i
+        m = scene.materials[bg_mat[i]]
+        alb = _albedo(m, bg.uv[:, sel], tex)
+        lin[sel] = _shade(alb, bg.normal[:, sel], light, np.full(len(alb), m.emissive))
+        ir[sel] = m.ir
+    return lin, ir
+
+
+def _render_background(
+    spec: ScenarioSpec, scene: _Scene, tex: _Tex, rays: _Rays, light: np.ndarray, intr
+) -> _Background:
+    """Ray cast and shade the empty room once, with its depth-noise and dropout model."""
+    bg = rnd.GBuffer(HEIGHT, WIDTH)
+    rnd.raycast(scene.prims, 0, bg, rays.xy, intr)
+    lin, ir = _shade_room(scene, tex, light, bg)
+    z_m = np.where(np.isfinite(bg.z), bg.z, 0.0).astype(np.float32)
+    cos = np.abs(bg.normal[0] * rays.rx + bg.normal[1] * rays.ry + bg.normal[2]) / rays.norm
+    blur = _blur(lin, spec.colour_blur)
+    noise_scale = np.float32(spec.depth_noise_scale)
+    sigma = kinect_v2_axial_sigma_mm(z_m, np.arccos(np.clip(cos, 0, 1))) * noise_scale
+    z_mm = z_m * np.float32(1000.0)
+    missing = _static_missing(z_mm, cos, spec.max_range_mm)
+    p_amp = _dropout_prob(ir, cos, z_m)
+    p_edge = _edge_prob(*_edge_flags(z_m, bg.pid))
+    cand_r, cand_c = np.nonzero(((p_amp > 1e-4) | (p_edge > 0)) & ~missing)
+    u8 = np.clip(np.rint(blur), 0, 255).astype(np.uint8)
+    return _Background(
+        bg,
+        lin,
+        blur,
+        u8,
+        z_m,
+        z_mm,
+        cos,
+        sigma,
+        missing,
+        p_amp,
+        cand_r,
+        cand_c,
+        p_amp[cand_r, cand_c],
+        p_edge[cand_r, cand_c],
+    )
+
+
+# Pre-drawn noise: each frame reads a randomly offset window of one of _BANKS fields, which
+# is statistically white noise again and much cheaper than drawing fresh fields per frame.
+_BANKS, _PAD = 3, 32
+
+
+class _NoiseBanks(NamedTuple):
+    colour: np.ndarray  # [K, H + PAD, W + PAD, 3] int16 colour noise, uint8 levels
+    depth: np.ndarray  # [K, H + PAD, W + PAD] float32 standard normal
+    uniform: np.ndarray  # [K, H + PAD, W + PAD] float32 U(0, 1) for edge dropouts
+    block: np.ndarray  # [K, H + PAD, W + PAD] float32 U(0, 1) in 2 x 2 blocks, weak returns
+
+
+def _noise_banks(seed: int, colour_noise: float) -> _NoiseBanks:
+    H, W, K, PAD = HEIGHT, WIDTH, _BANKS, _PAD
+    rng = np.random.default_rng([seed, 2])
+    col = np.rint(
+        rng.standard_normal((K, H + PAD, W + PAD, 3), dtype=np.float32) * np.float32(colour_noise)
+    ).astype(np.int16)
+    dep = rng.standard_normal((K, H + PAD, W + PAD), dtype=np.float32)
+    uni = rng.random((K, H + PAD, W + PAD), dtype=np.float32)
+    blk = rng.random((K, (H + PAD) // 2 + 1, (W + PAD) // 2 + 1), dtype=np.float32)
+    blk = np.repeat(np.repeat(blk, 2, axis=1), 2, axis=2)[:, : H + PAD, : W + PAD]
+    return _NoiseBanks(col, dep, uni, blk)
+
+
+class _FrameNoise(NamedTuple):
+    colour: np.ndarray  # [H, W, 3] int16
+    depth: np.ndarray  # [H, W] float32 standard normal
+    edge: np.ndarray  # [H, W] float32 U(0, 1)
+    amp: np.ndarray  # [H, W] float32 U(0, 1), 2 x 2 blocks
+
+
+def _frame_noise(banks: _NoiseBanks, seed: int, t: int) -> _FrameNoise:
+    """Frame ``t``'s windows of the banks, from a stream of its own (``[seed, 1, t]``), so
+    that frame ``t`` does not depend on the sequence length."""
+    H, W = HEIGHT, WIDTH
+    rng = np.random.default_rng([seed, 1, t])
+    kc, kd, ku = rng.integers(_BANKS, size=3)
+    off = rng.integers(_PAD + 1, size=(3, 2))
+    return _FrameNoise(
+        banks.colour[kc, off[0, 0] : off[0, 0] + H, off[0, 1] : off[0, 1] + W],
+        banks.depth[kd, off[1, 0] : off[1, 0] + H, off[1, 1] : off[1, 1] + W],
+        banks.uniform[ku, off[2, 0] : off[2, 0] + H, off[2, 1] : off[2, 1] + W],
+        # The same bank slot as ``edge`` with the offsets swapped: an independent window.
+        banks.block[ku, off[2, 1] : off[2, 1] + H, off[2, 0] : off[2, 0] + W],
+    )
+
+
+class _Stage(NamedTuple):
+    """What every frame is rendered against."""
+
+    spec: ScenarioSpec
+    intr: Intrinsics
+    cam: _Camera
+    rays: _Rays
+    light: np.ndarray
+    tex: _Tex
+    bg: _Background
+    floor_index: int
+    gain: np.ndarray  # [T, 3] float32 illumination gain per frame
+    unit_gain: bool
+    blur_r: int  # px reach of the lens blur
+    noise_scale: np.float32
+
+
+def _stage(
+    spec: ScenarioSpec, cam: _Camera, scene: _Scene, tex: _Tex, n_frames: int, fps: float
+) -> _Stage:
+    intr = KINECT_V2_DEPTH
+    rays = _rays(intr)
+    light = _light(cam)
+    bg = _render_background(spec, scene, tex, rays, light, intr)
+    gain = _illumination_gain(spec, n_frames, fps)
+    blur_r = int(np.ceil(3 * spec.colour_blur)) + 1 if spec.colour_blur > 0 else 0
+    noise_scale = np.float32(spec.depth_noise_scale)
+    unit_gain = bool(np.all(gain == 1.0))
+    return _Stage(
+        spec,
+        intr,
+        cam,
+        rays,
+        light,
+        tex,
+        bg,
+        scene.floor_index,
+        gain,
+        unit_gain,
+        blur_r,
+        noise_scale,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Dynamic objects: the walker and the occluders.
+
+
+class _Dynamic(NamedTuple):
+    person: list  # materials of the walker's parts, indexed like body.PART_NAMES
+    changed: list | None  # the same after ``shirt_change``
+    occluders: list  # materials of every occluder, after the walker's
+    offsets: list  # [n_occluders] first material index of each occluder
+    phase0: list  # [n_occluders] initial gait phase of each occluder, rad
+
+
+def _dynamic_objects(spec: ScenarioSpec, seed: int) -> _Dynamic:
+    """Materials of the walker and the occluders, and the occluders' gait phases."""
+    cl = spec.clothing
+    changed = None
+    if spec.shirt_change is not None:
+        changed = _person_materials(cl, tuple(spec.shirt_change[1]))
+    n_parts = len(body.PART_NAMES)
+    occ_mats: list[_Material] = []
+    offsets = []
+    for oc in spec.occluders:
+        offsets.append(n_parts + len(occ_mats))
+        if oc.kind == "box":
+            occ_mats.append(_Material(oc.colour, _ir(oc.colour), "plain", 0.004, 0.05))
+        elif oc.kind == "person":
+            ocl = oc.clothing or _OCCLUDER_CLOTHING
+            occ_mats.extend(_person_materials(ocl, ocl.shirt))
+        else:
+            raise ValueError(f"unknown occluder kind {oc.kind!r}; expected 'box' or 'person'")
+    # The occluders' phases come from a stream of their own, so that adding occluders
+    # leaves the layout of a seed as it is.
+    rng = np.random.default_rng([seed, 3])
+    phase0 = [rng.uniform(0, 2 * np.pi) for _ in spec.occluders]
+    return _Dynamic(_person_materials(cl, cl.shirt), changed, occ_mats, offsets, phase0)
+
+
+def _frame_materials(spec: ScenarioSpec, dyn: _Dynamic, t: int) -> list:
+    """Materials of frame ``t``'s dynamic primitives: the walker's, then the occluders'."""
+    changed = dyn.changed is not None and t >= spec.shirt_change[0]
+    return list(dyn.changed if changed else dyn.person) + dyn.occluders
+
+
+def _occluder_prims(
+    spec: ScenarioSpec, dyn: _Dynamic, t_s: float, walk_sign: float, cam: _Camera
+) -> list[rnd.Prim]:
+    """Primitives of every occluder at time ``t_s``: object ``2 + k`` for occluder ``k``,
+    ``a`` of the way along its straight walk; ``mirror_x`` ones follow the walker's initial
+    direction ``walk_sign``."""
+    prims = []
+    for k, oc in enumerate(spec.occluders):
+        if oc.mirror_x and walk_sign < 0:
+            oc = dataclasses.replace(
+                oc,
+                start_xz=(-oc.start_xz[0], oc.start_xz[1]),
+                end_xz=(-oc.end_xz[0], oc.end_xz[1]),
+            )
+        a = np.clip((t_s - oc.t0_s) / max(oc.t1_s - oc.t0_s, 1e-9), 0.0, 1.0)
+        xz = (1 - a) * np.asarray(oc.start_xz) + a * np.asarray(oc.end_xz)
+        sx, sy, sz = oc.size_m
+        if oc.kind == "person":
+            prims.extend(_occluder_person(oc, xz, a, dyn.phase0[k], sy, cam, dyn.offsets[k], 2 + k))
+            continue
+        half = np.array([sx, sy, sz]) / 2
+        centre = cam.to_cam((xz[0], sy / 2, xz[1]))
+        prims.append(rnd.box(centre, cam.R, half, 2 + k, dyn.offsets[k]))
+    return prims
+
+
+def _joint_part_table() -> np.ndarray:
+    """``[J, n_parts] bool``: which body parts count as joint ``j`` being visible."""
+    ok = np.zeros((len(body.JOINT_NAMES), len(body.PART_NAMES)), bool)
+    for j, jn in enumerate(body.JOINT_NAMES):
+        for pn in body.JOINT_PARTS[jn]:
+            ok[j, body.P[pn]] = True
+    return ok
+
+
+_JOINT_PART_OK = _joint_part_table()
+
+
+# ---------------------------------------------------------------------------------------------
+# One frame.
+
+
+class _Frames(NamedTuple):
+    """The rendered sequence, filled frame by frame."""
+
+    colour: np.ndarray  # [T, H, W, 3] uint8
+    depth: np.ndarray  # [T, H, W] uint16 mm
+    mask: np.ndarray  # [T, H, W] bool person pixels
+    joints3d: np.ndarray  # [T, J, 3] float32 mm
+    joint_vis: np.ndarray  # [T, J] bool
+    vis_count: np.ndarray  # [T] visible person pixels
+    unocc_count: np.ndarray  # [T] person pixels without the occluders
+
+
+def _allocate(T: int) -> _Frames:
+    H, W, J = HEIGHT, WIDTH, len(body.JOINT_NAMES)
+    return _Frames(
+        np.empty((T, H, W, 3), np.uint8),
+        np.empty((T, H, W), np.uint16),
+        np.zeros((T, H, W), bool),
+        np.empty((T, J, 3), np.float32),
+        np.zeros((T, J), bool),
+        np.zeros(T, np.int64),
+        np.zeros(T, np.int64),
+    )
+
+
+def _background_frame(st: _Stage, noise: _FrameNoise, colour_t, depth_t, gain_t) -> np.ndarray:
+    """Write the noisy empty room into ``colour_t [H, W, 3]`` and ``depth_t [H, W]``;
+    returns its ``[H, W] bool`` dropouts."""
+    bg = st.bg
+    if st.unit_gain:
+        cv2.add(bg.u8, noise.colour, dst=colour_t, dtype=cv2.CV_8U)
+    else:
+        cv2.add(bg.blur * gain_t, noise.colour, dst=colour_t, dtype=cv2.CV_8U)
+    cv2.add(bg.z_mm, bg.sigma * noise.depth, dst=depth_t, dtype=cv2.CV_16U)
+    missing = bg.missing.copy()
+    r, c = bg.cand_r, bg.cand_c
+    missing[r, c] |= (noise.amp[r, c] < bg.cand_amp) | (noise.edge[r, c] < bg.cand_edge)
+    return missing
+
+
+def _raycast_window(st: _Stage, win, person_prims, occ_prims) -> tuple[rnd.GBuffer, int]:
+    """The window's buffers in front of the room, and how many pixels the walker covers
+    before the occluders are cast."""
+    r0, r1, c0, c1 = win
+    gb = rnd.GBuffer.over(st.bg.gbuf.z[r0:r1, c0:c1])
+    rays_w = st.rays.xy[:, r0:r1, c0:c1]
+    rnd.raycast(person_prims, 0, gb, rays_w, st.intr, (r0, c0))
+    unoccluded = int(np.count_nonzero(gb.pid >= 0))
+    if occ_prims:
+        rnd.raycast(occ_prims, len(person_prims), gb, rays_w, st.intr, (r0, c0))
+    return gb, unoccluded
+
+
+def _joint_visibility(jc, gb: rnd.GBuffer, obj, ppart, win, intr, vis_row) -> None:
+    """Set ``vis_row [J]`` where the joint's own part is the nearest surface at its pixel."""
+    r0, r1, c0, c1 = win
+    ju = np.rint(intr.fx * jc[:, 0] / jc[:, 2] + intr.cx).astype(int) - c0
+    jv = np.rint(intr.fy * jc[:, 1] / jc[:, 2] + intr.cy).astype(int) - r0
+    for j in np.nonzero((ju >= 0) & (ju < c1 - c0) & (jv >= 0) & (jv < r1 - r0))[0]:
+        pid = gb.pid[jv[j], ju[j]]
+        if pid >= 0 and obj[pid] == 1:
+            vis_row[j] = _JOINT_PART_OK[j, ppart[pid]]
+
+
+def _dynamic_albedo(gb: rnd.GBuffer, dyn, pmat, materials, tex: _Tex):
+    """``([n, 3] albedo, [n] infrared reflectivity)`` of the dynamic pixels ``dyn``."""
+    pid = gb.pid[dyn]
+    uv_d = gb.uv[:, dyn]
+    alb = np.empty((len(pid), 3), np.float32)
+    ir = np.empty(len(pid), np.float32)
+    for i in np.unique(pid):
+        sel = pid == i
+        m = materials[pmat[i]]
+        alb[sel] = _albedo(m, uv_d[:, sel], tex)
+        ir[sel] = m.ir
+    return alb, ir
+
+
+def _floor_shadow(st: _Stage, loc, win, shadow_rect, dyn, root_c) -> None:
+    """Darken, in place, the floor of ``loc`` (the window's linear colour) around the
+    walker's feet: a Gaussian of 0.3 m around the point under the pelvis ``root_c``."""
+    r0, r1, c0, c1 = win
+    s0, s1 = max(shadow_rect[0], r0), min(shadow_rect[1], r1)
+    s2, s3 = max(shadow_rect[2], c0), min(shadow_rect[3], c1)
+    ss = (slice(s0, s1), slice(s2, s3))
+    zf = st.bg.z_m[ss]
+    d2 = (
+        (zf * st.rays.rx[ss] - root_c[0]) ** 2
+        + (zf * st.rays.ry[ss] - root_c[1]) ** 2
+        + (zf - root_c[2]) ** 2
+    )
+    on_floor = (st.bg.gbuf.pid[ss] == st.floor_index) & ~dyn[s0 - r0 : s1 - r0, s2 - c0 : s3 - c0]
+    shade = np.where(on_floor, 1 - 0.45 * np.exp(-d2 / (2 * 0.3**2)), 1.0)
+    loc[s0 - r0 : s1 - r0, s2 - c0 : s3 - c0] *= shade[..., None].astype(np.float32)
+
+
+def _shade_window(st: _Stage, win, dyn, nrm, alb, shadow_rect, root_c, noise, colour_t, gain_t):
+    """Shade the dynamic pixels over the room, shadow the floor and blur a margin of
+    ``blur_r`` around the window again, so that the objects' edges blur like the room."""
+    r0, r1, c0, c1 = win
+    blur_r = st.blur_r
+    pr0, pr1 = max(r0 - blur_r, 0), min(r1 + blur_r, HEIGHT)
+    pc0, pc1 = max(c0 - blur_r, 0), min(c1 + blur_r, WIDTH)
+    patch = st.bg.lin[pr0:pr1, pc0:pc1].copy()
+    inner = (slice(r0 - pr0, r1 - pr0), slice(c0 - pc0, c1 - pc0))
+    loc = patch[inner]
+    if shadow_rect is not None:
+        _floor_shadow(st, loc, win, shadow_rect, dyn, root_c)
+    loc[dyn] = _shade(alb, nrm, st.light)
+    patch = _blur(patch, st.spec.colour_blur)[inner]
+    if not st.unit_gain:
+        patch = patch * gain_t
+    ws = (slice(r0, r1), slice(c0, c1))
+    cv2.add(patch, noise.colour[ws], dst=colour_t[ws], dtype=cv2.CV_8U)
+
+
+def _window_edge_prob(st: _Stage, win, zl, gb: rnd.GBuffer, dyn) -> np.ndarray:
+    """Dropout probability of depth edges in the window, judged with a 1 px ring of the
+    room around it; each dynamic primitive counts as a surface of its own."""
+    r0, r1, c0, c1 = win
+    er0, er1 = max(r0 - 1, 0), min(r1 + 1, HEIGHT)
+    ec0, ec1 = max(c0 - 1, 0), min(c1 + 1, WIDTH)
+    ze = st.bg.z_m[er0:er1, ec0:ec1].copy()
+    ke = st.bg.gbuf.pid[er0:er1, ec0:ec1].copy()
+    e_in = (slice(r0 - er0, r1 - er0), slice(c0 - ec0, c1 - ec0))
+    ze[e_in] = zl
+    ke[e_in] = np.where(dyn, gb.pid + 100000, ke[e_in])
+    far, near = _edge_flags(ze, ke)
+    return _edge_prob(far[e_in], near[e_in])
+
+
+def _window_depth(st: _Stage, win, gb: rnd.GBuffer, dyn, nrm, ir, noise, missing, depth_t):
+    """Depth inside the window: noise, dropouts and discontinuities of the dynamic
+    surfaces; updates ``missing`` and ``depth_t`` in place."""
+    bg, rays = st.bg, st.rays
+    r0, r1, c0, c1 = win
+    ws = (slice(r0, r1), slice(c0, c1))
+    zl = np.where(dyn, gb.z, bg.gbuf.z[ws])
+    zl = np.where(np.isfinite(zl), zl, 0.0).astype(np.float32)
+    cosd = (
+        np.abs(nrm[0] * rays.rx[ws][dyn] + nrm[1] * rays.ry[ws][dyn] + nrm[2]) / rays.norm[ws][dyn]
+    )
+    cos_l = bg.cos[ws].copy()
+    cos_l[dyn] = cosd
+    sigma_l = bg.sigma[ws].copy()
+    sigma_l[dyn] = (
+        kinect_v2_axial_sigma_mm(zl[dyn], np.arccos(np.clip(cosd, 0, 1))) * st.noise_scale
+    )
+    p_amp_l = bg.p_amp[ws].copy()
+    p_amp_l[dyn] = _dropout_prob(ir, cosd, zl[dyn])
+    p_edge_l = _window_edge_prob(st, win, zl, gb, dyn)
+    zl_mm = zl * np.float32(1000.0)
+    missing[ws] = (
+        _static_missing(zl_mm, cos_l, st.spec.max_range_mm)
+        | (noise.amp[ws] < p_amp_l)
+        | (noise.edge[ws] < p_edge_l)
+    )
+    cv2.add(zl_mm, sigma_l * noise.depth[ws], dst=depth_t[ws], dtype=cv2.CV_16U)
+
+
+def _render_window(
+    st: _Stage,
+    out: _Frames,
+    t: int,
+    win,
+    shadow_rect,
+    person_prims,
+    occ_prims,
+    materials,
+    root_c,
+    noise: _FrameNoise,
+    missing,
+) -> None:
+    """Ray cast the dynamic objects into their window of frame ``t``: mask, joint
+    visibility, colour and depth."""
+    r0, r1, c0, c1 = win
+    ws = (slice(r0, r1), slice(c0, c1))
+    gb, out.unocc_count[t] = _raycast_window(st, win, person_prims, occ_prims)
+    prims = person_prims + occ_prims
+    dyn = gb.pid >= 0
+    obj = np.array([p.object_id for p in prims])
+    pmat = np.array([p.material for p in prims])
+    ppart = np.array([p.part for p in prims])
+    person = dyn & (obj[np.maximum(gb.pid, 0)] == 1)
+    out.mask[t][ws] = person
+    out.vis_count[t] = int(np.count_nonzero(person))
+    _joint_visibility(out.joints3d[t], gb, obj, ppart, win, st.intr, out.joint_vis[t])
+    nrm = gb.normal[:, dyn]
+    alb, ir = _dynamic_albedo(gb, dyn, pmat, materials, st.tex)
+    _shade_window(st, win, dyn, nrm, alb, shadow_rect, root_c, noise, out.colour[t], st.gain[t])
+    _window_depth(st, win, gb, dyn, nrm, ir, noise, missing, out.depth[t])
+
+
+def _render_frame(
+    st: _Stage,
+    walk: _Walk,
+    dyn: _Dynamic,
+    noise: _FrameNoise,
+    t: int,
+    walk_sign: float,
+    out: _Frames,
+) -> None:
+    """Frame ``t``: pose the walker and the occluders, draw the noisy room, then render the
+    dynamic objects inside the window they can touch."""
+    spec, cam = st.spec, st.cam
+    root_xz = walk.root_xz[t]
+    pose = body.body_pose(root_xz, walk.heading_xz[t], walk.phase[t], spec.speed_mps, spec.height_m)
+    out.joints3d[t] = cam.to_cam(pose.joints) * 1000.0
+    person_prims = _person_prims(pose, spec.height_m, cam, 0, 1)
+    occ_prims = _occluder_prims(spec, dyn, walk.t_s[t], walk_sign, cam)
+    win, shadow_rect = _dynamic_window(
+        person_prims + occ_prims, root_xz, cam, st.intr, HEIGHT, WIDTH
+    )
+    missing = _background_frame(st, noise, out.colour[t], out.depth[t], st.gain[t])
+    if win is not None:
+        root_c = cam.to_cam((root_xz[0], 0.0, root_xz[1])).astype(np.float32)
+        materials = _frame_materials(spec, dyn, t)
+        _render_window(
+            st, out, t, win, shadow_rect, person_prims, occ_prims, materials, root_c, noise, missing
+        )
+    np.putmask(out.depth[t], missing, 0)
+    if spec.colour_holes:
+        out.colour[t][missing] = 0
+
+
+def _render_frames(st: _Stage, walk: _Walk, dyn: _Dynamic, seed: int) -> _Frames:
+    out = _allocate(walk.n_frames)
+    banks = _noise_banks(seed, st.spec.colour_noise)
+    walk_sign = -1.0 if walk.heading_xz[0, 0] < 0 else 1.0  # the walker's initial x direction
+    for t in range(walk.n_frames):
+        _render_frame(st, walk, dyn, _frame_noise(banks, seed, t), t, walk_sign, out)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Ground truth.
+
+
+def _tight_boxes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``([T, 4] float32 xywh, [T] bool)``: the tight box of each frame's mask, and whether
+    it has a pixel; ``(0, 0, 0, 0)`` for an empty mask."""
+    boxes = np.zeros((len(mask), 4), np.float32)
+    rows_any = mask.any(axis=2)
+    cols_any = mask.any(axis=1)
+    visible = rows_any.any(axis=1)
+    for t in np.nonzero(visible)[0]:
+        r = np.nonzero(rows_any[t])[0]
+        c = np.nonzero(cols_any[t])[0]
+        boxes[t] = (c[0], r[0], c[-1] - c[0] + 1, r[-1] - r[0] + 1)
+    return boxes, visible
+
+
+def _project(joints3d: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """``[..., 3]`` camera points (mm) -> ``[..., 2] float32`` pixel ``(u, v)``."""
+    return np.stack(
+        [
+            intr.fx * joints3d[..., 0] / joints3d[..., 2] + intr.cx,
+            intr.fy * joints3d[..., 1] / joints3d[..., 2] + intr.cy,
+        ],
+        -1,
+    ).astype(np.float32)
+
+
+def _occlusion(vis_count: np.ndarray, unocc_count: np.ndarray):
+    """``([T] float32 visible fraction, [T] int8 state)``: 0 none (>= 97 % visible),
+    1 partial, 2 full or out of view."""
+    vis_frac = (vis_count / np.maximum(unocc_count, 1)).astype(np.float32)
+    occlusion = np.where(vis_frac >= 0.97, 0, np.where(vis_frac > 0.0, 1, 2)).astype(np.int8)
+    occlusion[unocc_count == 0] = 2
+    return vis_frac, occlusion
+
+
+def _world_to_camera_mm(cam: _Camera) -> np.ndarray:
+    """``[4, 4]`` homogeneous world (mm) -> camera (mm) transform."""
+    world_to_camera = np.eye(4)
+    world_to_camera[:3, :3] = cam.R
+    world_to_camera[:3, 3] = -cam.R @ cam.C * 1000.0
+    return world_to_camera
+
+
+def _meta(spec: ScenarioSpec, seed: int, st: _Stage, walk: _Walk, out: _Frames) -> dict:
+    vis_frac, occlusion = _occlusion(out.vis_count, out.unocc_count)
+    bg = st.bg
+    return dict(
+        spec=spec,
+        seed=seed,
+        # The empty room (no walker, no occluders, no sensor noise): a clean background
+        # model for paths that never uncover the middle of the view ("away_back").
+        background_colour=bg.u8,
+        background_depth=np.where(bg.missing, 0, np.rint(bg.z_mm)).astype(np.uint16),
+        camera_height_m=spec.camera_height_m,
+        camera_pitch_deg=spec.camera_pitch_deg,
+        world_to_camera_mm=_world_to_camera_mm(st.cam),
+        up=st.cam.dir_to_cam(np.array([0.0, 1.0, 0.0])),
+        joint_visible=out.joint_vis,
+        visible_fraction=vis_frac,
+        occlusion=occlusion,
+        gain=st.gain,
+        root_xz_m=walk.root_xz.astype(np.float32),
+        heading_xz=walk.heading_xz.astype(np.float32),
+        path_waypoints_m=np.asarray(walk.plan.waypoints),
+        walk_length_m=walk.plan.walk_length,
+        part_names=body.PART_NAMES,
+        box_convention="xywh top-left, 0-based, pixel c covers [c, c+1); tight box of mask",
+    )
+
+
+# ---------------------------------------------------------------------------------------------
 # The generator.
 
 
@@ -965,323 +1749,34 @@ def make_sequence(
     direction/offset, gait phase and noise (frame ``t`` of a seed is the same whatever the
     sequence length). n_frames: default ``spec.n_frames``, clipped for single-pass paths
     so the person stays in view. overrides: :class:`ScenarioSpec` fields.
+
+    The layout stream (``[seed, 0]``) draws the path, then the gait phase, the scene and
+    the textures, in this order; noise and occluder phases have streams of their own.
     """
     label, spec = _resolve(name, overrides)
-    intr = KINECT_V2_DEPTH
-    H, W = HEIGHT, WIDTH
     fps = float(spec.fps)
     layout_rng = np.random.default_rng([seed, 0])
-    # Occluder gait phases come from their own stream: the layout draws stay as they were.
-    layout_rng_occ = np.random.default_rng([seed, 3])
     cam = _camera(spec.camera_height_m, spec.camera_pitch_deg)
-
-    n_req = int(n_frames) if n_frames is not None else int(spec.n_frames)
-    wps, radius, s0, walk_len, extent_len = _plan_path(spec, layout_rng, n_req / fps)
-    if n_frames is None and np.isfinite(walk_len):
-        n_req = min(n_req, int(np.floor(walk_len / spec.speed_mps * fps)) + 1)
-    T = max(n_req, 1)
-    path = body.fillet_path(wps, radius)
-    t_s = np.arange(T) / fps
-    s = s0 + spec.speed_mps * t_s
-    root_xz, heading_xz = body.sample_path(path, s)
-    step = body.gait_parameters(spec.speed_mps)["step"]
-    phase0 = layout_rng.uniform(0, 2 * np.pi)
-    phase = phase0 + np.pi * (s - s0) / step
-
-    # Keep-out region of the planned walk (for furniture placement); independent of the
-    # sequence length so that frame t of a seed never depends on n_frames.
-    walked = path.xz[path.s <= extent_len + 0.1]
-    xs, zs = walked[:, 0], walked[:, 1]
-    # The body reaches ~0.45 m from the path (stride, arm swing) and ~0.6 m sideways in view.
-    amin = float(np.min((xs - 0.6) / zs))
-    amax = float(np.max((xs + 0.6) / zs))
-    keep_out = (xs.min() - 0.45, xs.max() + 0.45, zs.min() - 0.45, zs.max() + 0.45, amin, amax)
-    scene = _scene(spec, cam, layout_rng, keep_out)
+    walk = _walk(spec, layout_rng, n_frames, fps)
+    scene = _scene(spec, cam, layout_rng, walk.keep_out)
     tex = _make_tex(layout_rng)
-
-    rays = rnd.pixel_rays(H, W, intr.fx, intr.fy, intr.cx, intr.cy)
-    rx, ry = rays[0].astype(np.float32), rays[1].astype(np.float32)
-    ray_norm = np.sqrt(rx * rx + ry * ry + 1)
-    light = cam.dir_to_cam(np.array([-0.35, 1.0, -0.6]) / np.linalg.norm([-0.35, 1.0, -0.6]))
-    light = light.astype(np.float32)
-
-    # --- static background, rendered once -----------------------------------------------
-    bg = rnd.GBuffer(H, W)
-    rnd.raycast(scene.prims, 0, bg, rays, intr)
-    bg_mat = np.array([p.material for p in scene.prims])
-    bg_lin = np.zeros((H, W, 3), np.float32)
-    bg_ir = np.zeros((H, W), np.float32)
-    for i in np.unique(bg.pid[bg.pid >= 0]):
-        sel = bg.pid == i
-        m = scene.materials[bg_mat[i]]
-        alb = _albedo(m, bg.uv[:, sel], tex)
-        bg_lin[sel] = _shade(alb, bg.normal[:, sel], light, np.full(len(alb), m.emissive))
-        bg_ir[sel] = m.ir
-    bg_z = np.where(np.isfinite(bg.z), bg.z, 0.0).astype(np.float32)  # m, 0 = no surface
-    bg_cos = np.abs(bg.normal[0] * rx + bg.normal[1] * ry + bg.normal[2]) / ray_norm
-    bg_blur = _blur(bg_lin, spec.colour_blur)
-    noise_scale = np.float32(spec.depth_noise_scale)
-    bg_sigma = kinect_v2_axial_sigma_mm(bg_z, np.arccos(np.clip(bg_cos, 0, 1))) * noise_scale
-    bg_zmm = bg_z * np.float32(1000.0)
-    bg_missing = _static_missing(bg_zmm, bg_cos, spec.max_range_mm)
-    bg_p_amp = _dropout_prob(bg_ir, bg_cos, bg_z)
-    bg_p_edge = _edge_prob(*_edge_flags(bg_z, bg.pid))
-    cand_r, cand_c = np.nonzero(((bg_p_amp > 1e-4) | (bg_p_edge > 0)) & ~bg_missing)
-    cand_amp, cand_edge = bg_p_amp[cand_r, cand_c], bg_p_edge[cand_r, cand_c]
-
-    # Pre-drawn noise: each frame reads a randomly offset window of one of K fields, which
-    # is statistically white noise again and ~10x cheaper than drawing fresh normals.
-    K, PAD = 3, 32
-    bank_rng = np.random.default_rng([seed, 2])
-    col_bank = np.rint(
-        bank_rng.standard_normal((K, H + PAD, W + PAD, 3), dtype=np.float32)
-        * np.float32(spec.colour_noise)
-    ).astype(np.int16)
-    bg_u8 = np.clip(np.rint(bg_blur), 0, 255).astype(np.uint8)
-    dep_bank = bank_rng.standard_normal((K, H + PAD, W + PAD), dtype=np.float32)
-    uni_bank = bank_rng.random((K, H + PAD, W + PAD), dtype=np.float32)
-    blk = bank_rng.random((K, (H + PAD) // 2 + 1, (W + PAD) // 2 + 1), dtype=np.float32)
-    blk_bank = np.repeat(np.repeat(blk, 2, axis=1), 2, axis=2)[:, : H + PAD, : W + PAD]
-
-    # --- per-frame dynamic objects --------------------------------------------------------
-    cl = spec.clothing
-    pm_base = _person_materials(cl, cl.shirt)
-    pm_changed = None
-    if spec.shirt_change is not None:
-        pm_changed = _person_materials(cl, tuple(spec.shirt_change[1]))
-    n_parts = len(body.PART_NAMES)
-    occ_mats: list[_Material] = []
-    occ_mat_offset = []
-    for oc in spec.occluders:
-        occ_mat_offset.append(n_parts + len(occ_mats))
-        if oc.kind == "box":
-            occ_mats.append(_Material(oc.colour, _ir(oc.colour), "plain", 0.004, 0.05))
-        elif oc.kind == "person":
-            ocl = oc.clothing or _OCCLUDER_CLOTHING
-            occ_mats.extend(_person_materials(ocl, ocl.shirt))
-        else:
-            raise ValueError(f"unknown occluder kind {oc.kind!r}; expected 'box' or 'person'")
-    occ_phase0 = [layout_rng_occ.uniform(0, 2 * np.pi) for _ in spec.occluders]
-    walk_sign = -1.0 if heading_xz[0, 0] < 0 else 1.0  # the walker's initial x direction
-    gain = _illumination_gain(spec, T, fps)
-    unit_gain = bool(np.all(gain == 1.0))
-    blur_r = int(np.ceil(3 * spec.colour_blur)) + 1 if spec.colour_blur > 0 else 0
-
-    colour = np.empty((T, H, W, 3), np.uint8)
-    depth = np.empty((T, H, W), np.uint16)
-    mask = np.zeros((T, H, W), bool)
-    joints3d = np.empty((T, len(body.JOINT_NAMES), 3), np.float32)
-    joint_vis = np.zeros((T, len(body.JOINT_NAMES)), bool)
-    vis_count = np.zeros(T, np.int64)
-    unocc_count = np.zeros(T, np.int64)
-    joint_part_ok = np.zeros((len(body.JOINT_NAMES), n_parts), bool)
-    for j, jn in enumerate(body.JOINT_NAMES):
-        for pn in body.JOINT_PARTS[jn]:
-            joint_part_ok[j, body.P[pn]] = True
-
-    for t in range(T):
-        rng = np.random.default_rng([seed, 1, t])
-        kc, kd, ku = rng.integers(K, size=3)
-        off = rng.integers(PAD + 1, size=(3, 2))
-        col_noise = col_bank[kc, off[0, 0] : off[0, 0] + H, off[0, 1] : off[0, 1] + W]
-        dep_noise = dep_bank[kd, off[1, 0] : off[1, 0] + H, off[1, 1] : off[1, 1] + W]
-        u_edge = uni_bank[ku, off[2, 0] : off[2, 0] + H, off[2, 1] : off[2, 1] + W]
-        u_amp = blk_bank[ku, off[2, 1] : off[2, 1] + H, off[2, 0] : off[2, 0] + W]
-
-        pose = body.body_pose(root_xz[t], heading_xz[t], phase[t], spec.speed_mps, spec.height_m)
-        joints3d[t] = cam.to_cam(pose.joints) * 1000.0
-        mats = pm_base if (pm_changed is None or t < spec.shirt_change[0]) else pm_changed
-        dyn_mats = list(mats) + occ_mats
-        person_prims = _person_prims(pose, spec.height_m, cam, 0, 1)
-        occ_prims = []
-        for k, oc in enumerate(spec.occluders):
-            if oc.mirror_x and walk_sign < 0:
-                oc = dataclasses.replace(
-                    oc,
-                    start_xz=(-oc.start_xz[0], oc.start_xz[1]),
-                    end_xz=(-oc.end_xz[0], oc.end_xz[1]),
-                )
-            a = np.clip((t_s[t] - oc.t0_s) / max(oc.t1_s - oc.t0_s, 1e-9), 0.0, 1.0)
-            xz = (1 - a) * np.asarray(oc.start_xz) + a * np.asarray(oc.end_xz)
-            sx, sy, sz = oc.size_m
-            if oc.kind == "person":
-                occ_prims.extend(
-                    _occluder_person(oc, xz, a, occ_phase0[k], sy, cam, occ_mat_offset[k], 2 + k)
-                )
-                continue
-            occ_prims.append(
-                rnd.box(
-                    cam.to_cam((xz[0], sy / 2, xz[1])),
-                    cam.R,
-                    np.array([sx, sy, sz]) / 2,
-                    2 + k,
-                    occ_mat_offset[k],
-                )
-            )
-        prims = person_prims + occ_prims
-        root_c = cam.to_cam((root_xz[t][0], 0.0, root_xz[t][1])).astype(np.float32)
-        win, shadow_rect = _dynamic_window(prims, root_xz[t], cam, intr, H, W)
-
-        if unit_gain:
-            cv2.add(bg_u8, col_noise, dst=colour[t], dtype=cv2.CV_8U)
-        else:
-            cv2.add(bg_blur * gain[t], col_noise, dst=colour[t], dtype=cv2.CV_8U)
-        dep = depth[t]
-        cv2.add(bg_zmm, bg_sigma * dep_noise, dst=dep, dtype=cv2.CV_16U)
-        missing = bg_missing.copy()
-        missing[cand_r, cand_c] |= (u_amp[cand_r, cand_c] < cand_amp) | (
-            u_edge[cand_r, cand_c] < cand_edge
-        )
-        if win is not None:
-            r0, r1, c0, c1 = win
-            ws = (slice(r0, r1), slice(c0, c1))
-            gb = rnd.GBuffer.over(bg.z[ws])
-            rays_w = rays[:, r0:r1, c0:c1]
-            rnd.raycast(person_prims, 0, gb, rays_w, intr, (r0, c0))
-            unocc_count[t] = int(np.count_nonzero(gb.pid >= 0))
-            if occ_prims:
-                rnd.raycast(occ_prims, len(person_prims), gb, rays_w, intr, (r0, c0))
-            dyn = gb.pid >= 0
-            obj = np.array([p.object_id for p in prims])
-            pmat = np.array([p.material for p in prims])
-            ppart = np.array([p.part for p in prims])
-            person = dyn & (obj[np.maximum(gb.pid, 0)] == 1)
-            mask[t][ws] = person
-            vis_count[t] = int(np.count_nonzero(person))
-
-            # Joint visibility: the joint's own part is the nearest surface at its pixel.
-            jc = joints3d[t]
-            ju = np.rint(intr.fx * jc[:, 0] / jc[:, 2] + intr.cx).astype(int) - c0
-            jv = np.rint(intr.fy * jc[:, 1] / jc[:, 2] + intr.cy).astype(int) - r0
-            for j in np.nonzero((ju >= 0) & (ju < c1 - c0) & (jv >= 0) & (jv < r1 - r0))[0]:
-                pid = gb.pid[jv[j], ju[j]]
-                if pid >= 0 and obj[pid] == 1:
-                    joint_vis[t, j] = joint_part_ok[j, ppart[pid]]
-
-            # ---- colour: shade the dynamic pixels, shadow the floor, re-blur locally ----
-            pid = gb.pid[dyn]
-            nrm = gb.normal[:, dyn]
-            uv_d = gb.uv[:, dyn]
-            alb = np.empty((len(pid), 3), np.float32)
-            ir = np.empty(len(pid), np.float32)
-            for i in np.unique(pid):
-                sel = pid == i
-                m = dyn_mats[pmat[i]]
-                alb[sel] = _albedo(m, uv_d[:, sel], tex)
-                ir[sel] = m.ir
-            pr0, pr1 = max(r0 - blur_r, 0), min(r1 + blur_r, H)
-            pc0, pc1 = max(c0 - blur_r, 0), min(c1 + blur_r, W)
-            patch = bg_lin[pr0:pr1, pc0:pc1].copy()
-            inner = (slice(r0 - pr0, r1 - pr0), slice(c0 - pc0, c1 - pc0))
-            loc = patch[inner]
-            if shadow_rect is not None:
-                s0, s1 = max(shadow_rect[0], r0), min(shadow_rect[1], r1)
-                s2, s3 = max(shadow_rect[2], c0), min(shadow_rect[3], c1)
-                ss = (slice(s0, s1), slice(s2, s3))
-                zf = bg_z[ss]
-                d2 = (
-                    (zf * rx[ss] - root_c[0]) ** 2
-                    + (zf * ry[ss] - root_c[1]) ** 2
-                    + (zf - root_c[2]) ** 2
-                )
-                on_floor = (bg.pid[ss] == scene.floor_index) & ~dyn[
-                    s0 - r0 : s1 - r0, s2 - c0 : s3 - c0
-                ]
-                shade = np.where(on_floor, 1 - 0.45 * np.exp(-d2 / (2 * 0.3**2)), 1.0)
-                loc[s0 - r0 : s1 - r0, s2 - c0 : s3 - c0] *= shade[..., None].astype(np.float32)
-            loc[dyn] = _shade(alb, nrm, light)
-            patch = _blur(patch, spec.colour_blur)[inner]
-            if not unit_gain:
-                patch = patch * gain[t]
-            cv2.add(patch, col_noise[ws], dst=colour[t][ws], dtype=cv2.CV_8U)
-
-            # ---- depth: noise, dropouts and discontinuities inside the window ----
-            zl = np.where(dyn, gb.z, bg.z[ws])
-            zl = np.where(np.isfinite(zl), zl, 0.0).astype(np.float32)
-            cosd = np.abs(nrm[0] * rx[ws][dyn] + nrm[1] * ry[ws][dyn] + nrm[2]) / ray_norm[ws][dyn]
-            cos_l = bg_cos[ws].copy()
-            cos_l[dyn] = cosd
-            sigma_l = bg_sigma[ws].copy()
-            sigma_l[dyn] = (
-                kinect_v2_axial_sigma_mm(zl[dyn], np.arccos(np.clip(cosd, 0, 1))) * noise_scale
-            )
-            p_amp_l = bg_p_amp[ws].copy()
-            p_amp_l[dyn] = _dropout_prob(ir, cosd, zl[dyn])
-            er0, er1, ec0, ec1 = max(r0 - 1, 0), min(r1 + 1, H), max(c0 - 1, 0), min(c1 + 1, W)
-            ze = bg_z[er0:er1, ec0:ec1].copy()
-            ke = bg.pid[er0:er1, ec0:ec1].copy()
-            e_in = (slice(r0 - er0, r1 - er0), slice(c0 - ec0, c1 - ec0))
-            ze[e_in] = zl
-            ke[e_in] = np.where(dyn, gb.pid + 100000, ke[e_in])
-            far, near = _edge_flags(ze, ke)
-            p_edge_l = _edge_prob(far[e_in], near[e_in])
-            zl_mm = zl * np.float32(1000.0)
-            missing[ws] = (
-                _static_missing(zl_mm, cos_l, spec.max_range_mm)
-                | (u_amp[ws] < p_amp_l)
-                | (u_edge[ws] < p_edge_l)
-            )
-            cv2.add(zl_mm, sigma_l * dep_noise[ws], dst=dep[ws], dtype=cv2.CV_16U)
-        np.putmask(dep, missing, 0)
-        if spec.colour_holes:
-            colour[t][missing] = 0
-    vis_frac = (vis_count / np.maximum(unocc_count, 1)).astype(np.float32)
-
-    boxes = np.zeros((T, 4), np.float32)
-    rows_any = mask.any(axis=2)
-    cols_any = mask.any(axis=1)
-    visible = rows_any.any(axis=1)
-    for t in np.nonzero(visible)[0]:
-        r = np.nonzero(rows_any[t])[0]
-        c = np.nonzero(cols_any[t])[0]
-        boxes[t] = (c[0], r[0], c[-1] - c[0] + 1, r[-1] - r[0] + 1)
-    joints2d = np.stack(
-        [
-            intr.fx * joints3d[..., 0] / joints3d[..., 2] + intr.cx,
-            intr.fy * joints3d[..., 1] / joints3d[..., 2] + intr.cy,
-        ],
-        -1,
-    ).astype(np.float32)
-    occlusion = np.where(vis_frac >= 0.97, 0, np.where(vis_frac > 0.0, 1, 2)).astype(np.int8)
-    occlusion[unocc_count == 0] = 2
-    world_to_camera = np.eye(4)
-    world_to_camera[:3, :3] = cam.R
-    world_to_camera[:3, 3] = -cam.R @ cam.C * 1000.0
-    meta = dict(
-        spec=spec,
-        seed=seed,
-        # The empty room (no walker, no occluders, no sensor noise): a clean background
-        # model for paths that never uncover the middle of the view ("away_back").
-        background_colour=bg_u8,
-        background_depth=np.where(bg_missing, 0, np.rint(bg_zmm)).astype(np.uint16),
-        camera_height_m=spec.camera_height_m,
-        camera_pitch_deg=spec.camera_pitch_deg,
-        world_to_camera_mm=world_to_camera,
-        up=cam.dir_to_cam(np.array([0.0, 1.0, 0.0])),
-        joint_visible=joint_vis,
-        visible_fraction=vis_frac,
-        occlusion=occlusion,
-        gain=gain,
-        root_xz_m=root_xz.astype(np.float32),
-        heading_xz=heading_xz.astype(np.float32),
-        path_waypoints_m=np.asarray(wps),
-        walk_length_m=walk_len,
-        part_names=body.PART_NAMES,
-        box_convention="xywh top-left, 0-based, pixel c covers [c, c+1); tight box of mask",
-    )
+    dyn = _dynamic_objects(spec, seed)
+    st = _stage(spec, cam, scene, tex, walk.n_frames, fps)
+    out = _render_frames(st, walk, dyn, seed)
+    boxes, visible = _tight_boxes(out.mask)
     return SyntheticSequence(
-        colour,
-        depth,
+        out.colour,
+        out.depth,
         boxes,
         visible,
-        joints3d,
-        joints2d,
+        out.joints3d,
+        _project(out.joints3d, st.intr),
         body.JOINT_NAMES,
-        mask,
-        intr,
+        out.mask,
+        st.intr,
         fps,
         label,
-        meta,
+        _meta(spec, seed, st, walk, out),
     )
 
 

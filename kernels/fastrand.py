@@ -1,22 +1,20 @@
 """Counter-based random numbers from an integer hash: the particle filter's bulk draws.
 
 JAX's default generator (threefry-2x32, 20 rounds) is the right default for
-keys and splitting, but it is slow for bulk draws on a CPU: 800,000 normals
-(the motion noise of 100,000 eight-dimensional particles) take about 8 ms on
-the reference 2-core machine, a sixth of a whole colour step. Here one
-threefry call turns the caller's key into two 32-bit seeds, and the bulk bits
-are a hash of the element's index:
+keys and splitting, but its 20 rounds per word make bulk draws on a CPU (the
+motion noise of 100,000 eight-dimensional particles is 800,000 normals) a large
+share of a filter step. Here one threefry call turns the caller's key into two
+32-bit seeds, and the bulk bits are a hash of the element's index:
 
     bits[i] = pcg(pcg(i ^ s0) + s1)
 
 with ``pcg`` the PCG-RXS-M-XS output permutation applied to one LCG step
 (the "pcg" hash of Jarzynski and Olano, "Hash Functions for GPU Rendering",
 JCGT 2020, which they recommend for its quality per cost; the statistical
-checks made here are in the tests named below). Every stage is a bijection of 32-bit words, so the
-``2**32`` counters of one key give distinct words (no collisions within a
-draw). The same operations vectorise on CPU and GPU: about 3x faster than
-``jax.random.normal`` for the draw above, including the ``erf_inv``
-transform both use.
+checks made here are in the tests named below). Every stage is a bijection of
+32-bit words, so the ``2**32`` counters of one key give distinct words (no
+collisions within a draw). The same few integer operations vectorise on CPU and
+GPU; normals use the ``erf_inv`` transform of ``jax.random.normal``.
 
 Keys behave as usual: the same key gives the same numbers, ``jax.random.split``
 / ``fold_in`` give independent streams (through the seeds), and everything

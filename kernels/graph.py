@@ -26,7 +26,7 @@ Row sweeps (why not plain Jacobi relaxation)
 Plain relaxation ``d = min(d, shift_k(d) + w_k)`` over the 8 directions moves
 information one pixel per pass, so it needs as many passes as the longest
 shortest path has hops (about 220 for a head-to-foot path in a 256-row
-window; about 13 ms on a 2-core CPU). Here a *down sweep* visits the rows in
+window). Here a *down sweep* visits the rows in
 order inside one ``lax.scan``: row ``r`` first takes ``min`` with its three
 upper neighbours (already final for this sweep), then is closed exactly along
 its own row (every path that stays inside the row, both directions). An *up

@@ -4,121 +4,68 @@ Conventions (those of ``cpf_jax.kernels.boxes``):
 
 * ``bins``: ``[H, W] int32`` flat bin index per pixel (``color.hs_bin_index``).
   Pixels whose bin lies outside ``[0, n_bins)`` (e.g. ``-1``) are not counted,
-  so a mask can be applied by setting bins to ``-1``.
-* ``rects``: ``[..., 4] (x0, y0, x1, y1) int32``, half-open pixel rectangles,
-  clipped to the frame here; a rect fully outside the frame, or with
+  so a mask is applied by setting bins to ``-1``.
+* ``rects``: ``[..., 4] (x0, y0, x1, y1) int32`` half-open pixel rectangles (or
+  ``RectColumns``), clipped to the frame here; a rect outside the frame, or with
   ``x1 <= x0`` / ``y1 <= y0``, is empty.
-* ``boxes``: ``[N, 4] (x, y, w, h) float32`` top-left boxes; they count the
+* ``boxes``: ``[..., 4] (x, y, w, h) float32`` top-left boxes; they count the
   pixels of ``boxes.xywh_to_rect(boxes)`` (corners rounded with ``floor(v + 0.5)``).
-* Histograms are exact pixel counts (``float32``); every function here equals
-  ``cv2.calcHist`` on the same (clipped) crop, bin for bin.
+* Histograms are exact pixel counts (``float32``), equal bin for bin to
+  ``cv2.calcHist`` on the same clipped crop.
 
 Bhattacharyya distance (thesis eq. 3.7), on histograms normalised to sum 1::
 
     d = sqrt(1 - sum_i sqrt(p_i q_i))
 
-``bhattacharyya`` evaluates it in the algebraically equal Hellinger form
-``sqrt(0.5 * sum_i (sqrt(p_i) - sqrt(q_i))^2)``: the argument is a sum of
-squares (never negative, no NaN) and accurate near ``d = 0`` in float32, and
-its gradients are finite. The per-rect kernels (``rect_distances``,
-``box_distances``) compute ``1 - BC`` with ``BC = sum sqrt(c_i) sqrt(q_i) /
-sqrt(sum c)`` from the exact counts ``c`` instead, clamped at 0 before the
-square root: two plain reductions that XLA fuses with the corner gathers (the
-Hellinger form costs twice as much there). Float32 cancellation bounds its
-error near ``d = 0`` to ``|d^2 - d_exact^2| < 2e-6`` (``|d - d_exact| < 2e-3``;
-a likelihood ``exp(-d^2 / 2 sigma^2)`` sees ``d^2``); tested against OpenCV.
-An empty histogram (no counted pixel, or an empty reference) gives ``d = 1``,
-as in OpenCV. ``cv2.compareHist(h1, h2, cv2.HISTCMP_BHATTACHARYYA)`` returns
-the same on unnormalised histograms (OpenCV normalises internally).
+``bhattacharyya`` evaluates it in the equal Hellinger form
+``sqrt(0.5 * sum_i (sqrt(p_i) - sqrt(q_i))^2)``: a sum of squares (never negative),
+accurate near ``d = 0`` in float32 and with finite gradients.
+``squared_bhattacharyya`` evaluates ``d^2 = 1 - sum_i sqrt(c_i) sqrt(q_i) / sqrt(n)``
+from exact counts ``c`` of ``n`` pixels instead: two plain reductions that XLA fuses
+with the corner gathers, whose float32 cancellation error stays below ``2e-6`` in
+``d^2`` (the quantity a likelihood ``exp(-d^2 / 2 sigma^2)`` sees). An empty
+histogram gives ``d = 1``, as ``cv2.compareHist(h1, h2, cv2.HISTCMP_BHATTACHARYYA)``
+does (it normalises internally).
 
-Speed: integral histograms in a window (the design, and its trade-offs)
-----------------------------------------------------------------------
-A particle filter evaluates N boxes of different sizes per frame. An integral
-histogram ``T[y, x, b]`` (count of bin ``b`` in ``[0, x) x [0, y)``) gives any
-rect's exact histogram from four corner rows: ``T[y1,x1] - T[y0,x1] - T[y1,x0]
-+ T[y0,x0]``. Building ``T`` is memory-bound (``(h+1)(w+1) n_bins`` entries,
-each written and read twice), so the fast path (``window=(wh, ww)``):
+Windowed integral histograms (``rect_reduce``)
+----------------------------------------------
+An integral histogram ``T[y, x, b]`` (count of bin ``b`` in ``[0, x) x [0, y)``)
+gives any rect's exact histogram from four corner rows, ``T[y1, x1] - T[y0, x1] -
+T[y1, x0] + T[y0, x0]``. Building ``T`` is memory-bound, so with ``window=(wh, ww)``
+it covers only a window of static shape whose origin is dynamic, placed over the
+bounding rectangle of the non-empty rects (``window_origin``), and it counts in
+``uint16``: modular arithmetic keeps the four-corner difference exact for every
+rect of fewer than 65,536 pixels, whatever the table's own values. The table is
+laid out ``[y, x, bins]`` so that each corner is one contiguous row; it is
+prefix-summed along x in blocks and along y by an in-place row loop. The corner
+rows are computed once, corner-major, then gathered and reduced in sequential
+chunks of ``chunk`` rects, so that no ``[N, n_bins]`` block exists.
 
-* builds ``T`` only over a window of **static** shape ``(wh, ww)`` whose
-  origin is **dynamic**: placed (``lax.dynamic_slice``) so that it covers the
-  bounding rectangle of all non-empty clipped rects when that fits
-  (``window_origin``);
-* stores counts in ``uint16`` (half the bytes of int32). Wrap-around modular
-  arithmetic makes the four-corner difference exact for every rect of fewer
-  than 65,536 pixels, whatever the table's own values;
-* builds the prefix sums along x blocked (``_cumsum``: block totals, their
-  prefix, then one vectorised pass of unrolled adds) and along y with an
-  in-place ``lax.fori_loop`` + ``lax.dynamic_update_slice`` of one row at a
-  time; layout ``[y, x, bins]`` so that each corner is one contiguous row of
-  ``n_bins`` counts. The row loop ends the build so that the table is a buffer
-  of its own (a cheap last fusion was re-fused into every gather). Measured on
-  the reference 2-core CPU (352 x 288 window, 72 bins, same process): 7.0 ms
-  with a column loop instead of the blocked pass, ~4.4 ms now, and the colour
-  step at N = 10,000 ~2 ms faster; ``jnp.cumsum`` / ``lax.scan`` /
-  ``associative_scan`` were 2-10x slower than the loops;
-* materialises the corner row indices once, corner-major ``[4, N]``
-  (otherwise XLA fuses the index arithmetic into the gather and redoes it for
-  each of the ``n_bins`` outputs; a trailing corner axis made cutting them
-  into chunks an element-wise transpose), then gathers and reduces in
-  sequential chunks of ``chunk`` rects (default ``DEFAULT_CHUNK = 4096``) so
-  that no ``[N, n_bins]`` block exists: at N = 100k an unchunked one is
-  25.6 MB of fresh pages on every call;
-* materialises each chunk's integer counts before the caller's reduction
-  (fused, the gathers ran element by element inside the float reduction) and
-  can hand the reduction each rect's pixel count (``with_area``) instead of a
-  sum over the bins.
-
-**Exactness is never traded away.** When some non-empty rect is not inside
-the window (the cloud is wider than the window) or has 65,536 pixels or more,
-``fallback=True`` (default) switches with ``lax.cond`` to the general path:
-one full-frame ``uint16`` table, each rect cut into the few near-equal pieces
-(``(1, 4)`` on 512 x 424) that keep every piece under 65,536 pixels, pieces
-summed. It is exact for any rect and costs about the full-frame table
-(~2x a typical window) plus 4x the gathers. Its buffers are no larger than the
-fast path's, so merely having the branch costs nothing (XLA sizes one
-temporary arena for both branches; a 68 MB branch made every call re-fault
-its pages). Only the branch taken runs, under ``vmap`` too: the predicate goes
-through ``batch_all``, so a batch (filter keys, settings) takes the fast path when
-every member fits the window and the fallback otherwise (with a plain batched
-predicate ``lax.cond`` becomes a ``select`` and both branches run for everyone).
-``fallback=False`` skips the check and counts only the part of each rect
-inside the window: exact for rects inside the window (``window_covers``
-tells), the intersection's histogram otherwise; for callers that guarantee
-coverage. ``window=None`` is the general path directly.
-
-The window should cover the largest box plus the extent of the particle cloud:
-``suggest_window`` takes the expected range of N normal centres
-(``2 sqrt(2 ln N)`` standard deviations). The table costs
-``2 (wh+1)(ww+1) n_bins`` bytes: with the colour filter's 72 bins (8x8 H-S
-plus 8 value bins) and a 352 x 288 window it is 14.7 MB and takes about
-4.4 ms to build on the reference 2-core CPU (about 7 ms with the column loop
-the blocked x pass replaced); corner gathers and the distance cost about
-0.1 ms per 1,000 rects.
-16x16 bins multiply the table (not the gathers) by 4, which is why the default
-is 8x8 (``DEFAULT_BINS``); 8x8 and 16x16 are different likelihoods, not
-approximations of each other.
-
-When all particles share one integer rect size, ``shared_size_distance_map``
-computes the exact distance of that rect at every integer position of a
-``[ph, pw]`` grid with dense shifted slices of the table (no gather), after
-which each particle costs one look-up (``distances_from_map``).
+Exactness is never traded for speed. When some non-empty rect is not inside the
+window, or has 65,536 pixels or more, ``fallback=True`` switches with ``lax.cond``
+to the general path: one full-frame table, in ``uint16`` with each rect cut into
+the few pieces that keep every piece under 65,536 pixels, or in ``uint32`` with
+whole rects from ``WIDE_COUNTS_MIN_RECTS`` rects on. The predicate goes through
+``batch_all``, so that under ``vmap`` the ``cond`` stays a branch and only the path
+taken runs. ``fallback=False`` skips the check and counts each rect's intersection
+with the window (exact for the rects inside it, which ``window_covers`` tells);
+``window=None`` is the general path directly. ``suggest_window`` sizes a window for
+a cloud of particle boxes.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
 import jax.numpy as jnp
 from jax import Array, lax
 
-from .boxes import clip_rect, xywh_to_rect
-from .color import hs_bin_index
+from .boxes import clip_rect
 
 __all__ = [
     "DEFAULT_BINS",
-    "hs_histogram_bins",
-    "integral_histogram",
     "integral_image",
     "rect_sums",
     "grid_sums",
@@ -132,54 +79,35 @@ __all__ = [
     "rect_reduce",
     "RectColumns",
     "rect_columns",
-    "rect_histograms_fast",
     "box_histograms",
+    "normalise_counts",
+    "squared_bhattacharyya",
     "bhattacharyya",
-    "rect_distances",
-    "box_distances",
-    "shared_size_distance_map",
-    "distances_from_map",
 ]
 
-#: Default (h_bins, s_bins): 8x8 = 64 bins. The whole colour step meets the
-#: speed targets with it (N=10k particles well above 100 frames/s on 2 CPU
-#: cores); 16x16 quadruples the integral table and misses them.
+#: Default (h_bins, s_bins): 8x8 = 64 bins. 16x16 quadruples the integral table (not
+#: the gathers); the two are different likelihoods, not approximations of each other.
 DEFAULT_BINS: tuple[int, int] = (8, 8)
 
 _U16_LIMIT = 1 << 16
 
-#: Rects per sequential chunk on the windowed path: bounds the ``[chunk, n_bins]``
-#: temporaries (at N = 100k an unchunked ``[N, 64]`` float32 block is 25.6 MB,
-#: freshly page-faulted on every call on CPU). 4096 keeps a chunk's integer
-#: counts (4096 boxes x 2 parts x 72 bins x 2 bytes = 1.2 MB) in a 2 MB L2
-#: cache: the N = 100k colour step took 40 ms with 8192, 34 ms with 4096 and
-#: 36-42 ms with 2048 or 1024 on the reference 2-core CPU (a GPU would want
-#: larger chunks: pass ``chunk``).
+#: Rects per sequential chunk: bounds the ``[chunk, n_bins]`` temporaries, which
+#: unchunked would be fresh pages on every call. 4096 keeps a chunk's integer counts
+#: (4096 boxes x 2 parts x 72 bins x 2 bytes = 1.2 MB) in a 2 MB L2 cache; a GPU
+#: wants larger chunks (pass ``chunk``).
 DEFAULT_CHUNK = 4096
 
 #: From this many rects (static: N x parts) the whole-frame path counts with a uint32
 #: table, one piece per rect, instead of a uint16 table whose rects are cut into the
-#: pieces that keep each count under 65,536 (4 on a 512 x 424 frame). The uint32
-#: table costs 2-3x as much to build (19 against 12 ms with 64 bins, 33 against 11 ms
-#: with 72, on 512 x 424; 2-core Intel Xeon, 2026-11-28), the pieces 4x the corner
-#: gathers: at 100,000 rects 36 against 132 ms (64 bins), at 2 x 100,000 68 against
-#: 301 ms (72 bins); at 10,000 rects 20 against 23 ms, at 2 x 10,000 41 against 34 ms
-#: (scratch; the counts are identical). Near 40,000 rects they tie: the RGB-D grid
-#: filters' steps at N = 10,000 (4 cells a particle) took 170 against 189 ms (grid)
-#: and 230-238 against 221 ms (grid-occlusion) in uint32 (A/B in one process), so
-#: they stay on uint16. The colour filter's AR1 models take this path at N = 100,000:
-#: one particle box outgrowing the histogram window is enough.
+#: pieces that keep each count under 65,536 (4 on a 512 x 424 frame). The uint32 table
+#: costs more to build and the pieces multiply the corner gathers, so that uint32 pays
+#: only for many rects; the two tie near 40,000 rects. The counts are the same either way.
 WIDE_COUNTS_MIN_RECTS = 65_536
 
-#: Up to this many rects (static), ``box_histograms`` counts each rect by a
-#: masked scatter-add over the frame (about 0.4 ms per rect on 512 x 424)
-#: instead of building the full-frame integral histogram (about 8 ms).
+#: Up to this many rects (static), ``box_histograms`` counts each rect by a masked
+#: scatter-add over the frame, which for a few rects costs less than building the
+#: full-frame integral histogram.
 SCATTER_MAX_RECTS = 16
-
-
-def hs_histogram_bins(colour: Array, bins: tuple[int, int] = DEFAULT_BINS) -> Array:
-    """``[H, W, 3] uint8`` RGB -> ``[H, W] int32`` flat H-S bins (``color.hs_bin_index``)."""
-    return hs_bin_index(colour, bins[0], bins[1])
 
 
 # ----------------------------------------------------------------------------- integral table
@@ -187,13 +115,11 @@ def hs_histogram_bins(colour: Array, bins: tuple[int, int] = DEFAULT_BINS) -> Ar
 
 def _prefix_sums_yx(table: Array) -> Array:
     """In-place 2D prefix sums of ``table [h + 1, w + 1, c]`` (row 0 / column 0 are zero):
-    the reference loops (``method="loop"``) behind the blocked default.
+    the reference loops of ``integral_image(method="loop")``.
 
-    Rows first (each step adds one contiguous row to the next), then columns:
-    XLA updates the loop-carried buffer in place, without copies. Measured on
-    2 CPU cores this order is as fast or faster than columns first and less
-    sensitive to the table's size (the column pass then reads rows already
-    summed, in cache order).
+    Rows first (each step adds one contiguous row to the next), then columns: XLA
+    updates the loop-carried buffer in place, and the column pass reads rows already
+    summed, in cache order.
     """
 
     def along_x(x, t):
@@ -219,8 +145,8 @@ def _prefix_rows(table: Array) -> Array:
     return lax.fori_loop(0, table.shape[0] - 1, along_y, table)
 
 
-#: Block length of the blocked prefix sums (``_cumsum``): 8 measured fastest on the
-#: reference 2-core CPU (4: +20 %, 16: +90 %, both passes blocked).
+#: Block length of the blocked prefix sums (``_cumsum``): longer blocks cost more adds
+#: per element (up to ``block``), shorter ones a longer loop over the block totals.
 PREFIX_BLOCK = 8
 
 
@@ -232,12 +158,10 @@ def _cumsum(x: Array, axis: int, block: int = PREFIX_BLOCK) -> Array:
     exclusive prefix is a loop over the (``block`` times shorter) totals, and one
     last fused, vectorised pass writes each block as an unrolled chain of adds on
     top of its offset (an element at position ``k`` in its block costs ``k + 1``
-    adds). ``jnp.cumsum`` lowers to a quadratic ``reduce_window`` on CPU; a
-    ``fori_loop`` of one strided column at a time was ~2x slower. The totals'
-    prefix must come out of a loop: as a chain of adds XLA fused it into the last
-    pass and redid it for every element (4-8x slower), or, unrolled, it doubled
-    the compile time. Integer sums are exact (unsigned ones modulo 2^bits, in any
-    order); float sums round differently from a sequential loop.
+    adds). ``jnp.cumsum`` lowers to a quadratic ``reduce_window`` on CPU. The
+    totals' prefix is a loop because XLA fuses a chain of adds into the last pass
+    and recomputes it for every element. Integer sums are exact (unsigned ones
+    modulo 2^bits, in any order); float sums round differently from a sequential loop.
     """
     n = x.shape[axis]
     pad = -n % block
@@ -269,10 +193,10 @@ def _materialise(x: Array, bands: int = 4) -> Array:
 
     XLA fuses cheap producers (a ``dynamic_slice`` of the frame, a one-hot, a
     per-pixel weight look-up) into every consumer. The blocked prefix sums read
-    their input twice, in passes whose vectorised loops lose to the producer's
-    index arithmetic (a dynamically sliced window: 18-20 ms instead of 3 ms);
-    ``lax.optimization_barrier`` does not stop this on CPU (jax 0.10), a loop
-    boundary does. Bands overlap at the end when ``bands`` does not divide the rows.
+    their input twice, in passes whose vectorisation the fused index arithmetic of
+    such a producer defeats. A loop boundary stops the fusion, which
+    ``lax.optimization_barrier`` does not on XLA:CPU. Bands overlap at the end when
+    ``bands`` does not divide the rows.
     """
     h = x.shape[0]
     bands = max(1, min(bands, h))
@@ -293,15 +217,15 @@ def _integral(values: Array) -> Array:
     the zero row and column, then the in-place row loop along y
     (``_prefix_rows``, also ``_prefix_sums_yx``'s first pass).
 
-    The row loop's result is a buffer of its own. Ending with the blocked pass
-    instead (~1.5 ms less in isolation) lost more than it saved: XLA fused or
-    sank that last cheap concatenation into every consumer (the corner gathers in
-    their loop, the estimate's gather), recomputing it per gathered count.
+    The row loop comes last so that the table is a buffer of its own: XLA fuses a
+    cheap last pass into every consumer (the corner gathers), recomputing it per
+    gathered count.
     """
     return _prefix_rows(jnp.pad(_cumsum(values, 1), ((1, 0), (1, 0), (0, 0))))
 
 
-#: Ways to build an integral table (``integral_histogram`` / ``integral_image``).
+#: Ways to build an integral table (``integral_image``): blocked prefix sums, or the
+#: reference row and column loops; equal bit for bit on integers.
 TABLE_METHODS = ("blocked", "loop")
 
 
@@ -310,30 +234,10 @@ def _check_method(method: str) -> None:
         raise ValueError(f"method must be one of {TABLE_METHODS}, got {method!r}")
 
 
-def integral_histogram(
-    bins: Array, n_bins: int, dtype=jnp.uint16, method: str = "blocked"
-) -> Array:
-    """``[h, w] int32`` bins -> ``[h+1, w+1, n_bins]`` integral histogram.
-
-    ``T[y, x, b]`` = number of pixels of bin ``b`` in ``[0, x) x [0, y)``.
-    With ``dtype=uint16`` the values wrap modulo 65,536 (differences of four
-    corners stay exact for rects of fewer than 65,536 pixels); use ``int32``
-    for larger regions. ``method``: ``"blocked"`` (default, ``_integral``) or
-    ``"loop"`` (the row and column loops of ``_prefix_sums_yx``); equal bit for bit.
-    The counting paths read the table with its channels padded (``_histogram_table``,
-    ``TABLE_ROW_ALIGN``); this returns its first ``n_bins`` channels.
-    """
-    table = _histogram_table(bins, n_bins, dtype, method)
-    return table if table.shape[-1] == n_bins else table[..., :n_bins]
-
-
 #: The integral histogram's channel axis is stored padded with empty channels to a
-#: multiple of this many bytes (``_table_channels``). The row loop's copies and adds
-#: run on whole vectors only then: XLA:CPU compiled a ``[1, 289, 72]`` uint16 row as
-#: scalar code, a ``[1, 289, 80]`` one vectorised. Measured on the reference 2-core
-#: CPU (2026-11-28), the 352 x 288 window's table with 72 bins: 4.4 -> 2.6 ms, the colour
-#: step 1.4 / 1.6 ms faster at N = 1,000 / 10,000 (bit-identical; interleaved A/B). The
-#: gathers read rows 11 % further apart; at N = 100,000 one A/B gave 34.4 against 37.1 ms.
+#: multiple of this many bytes (``_table_channels``), so that the row loop's copies and
+#: adds run on whole vectors: XLA:CPU compiles a ``[1, 289, 72]`` uint16 row as scalar
+#: code and a ``[1, 289, 80]`` one as vector code.
 TABLE_ROW_ALIGN = 32
 
 
@@ -343,10 +247,13 @@ def _table_channels(n_bins: int, dtype) -> int:
     return -(-n_bins // per) * per
 
 
-def _histogram_table(bins: Array, n_bins: int, dtype, method: str = "blocked") -> Array:
-    """``integral_histogram`` with its channels padded to ``_table_channels`` (the padding
-    channels count nothing): the form the corner gathers read (``_corner_counts``)."""
-    _check_method(method)
+def _histogram_table(bins: Array, n_bins: int, dtype) -> Array:
+    """``[h, w] int32`` bins -> ``[h + 1, w + 1, channels]`` integral histogram in ``dtype``:
+    ``T[y, x, b]`` = number of pixels of bin ``b`` in ``[0, x) x [0, y)``, modulo 2^bits.
+
+    The channels are ``n_bins`` padded to ``_table_channels``; the padding channels
+    count nothing. This is the form the corner gathers read (``_corner_counts``).
+    """
     channels = _table_channels(n_bins, dtype)
 
     def one_hot(b: Array) -> Array:
@@ -355,16 +262,15 @@ def _histogram_table(bins: Array, n_bins: int, dtype, method: str = "blocked") -
             b = jnp.where((b >= 0) & (b < n_bins), b, -1)
         return (b[..., None] == jnp.arange(channels, dtype=b.dtype)).astype(dtype)
 
-    if method == "loop":
-        return _prefix_sums_yx(jnp.pad(one_hot(bins), ((1, 0), (1, 0), (0, 0))))
     return _integral(one_hot(_materialise(bins)))
 
 
 def integral_image(values: Array, method: str = "blocked") -> Array:
     """``[h, w, c]`` values -> ``[h+1, w+1, c]`` summed-area tables (``T[y, x]`` = sum over
     ``[0, x) x [0, y)``), in the dtype of ``values``. Integer values give exact sums
-    (int32: while the frame's total magnitude stays below 2^31). ``method`` as in
-    ``integral_histogram`` (float sums round differently)."""
+    (int32: while the frame's total magnitude stays below 2^31). ``method``: ``"blocked"``
+    (``_integral``) or ``"loop"`` (the row and column loops of ``_prefix_sums_yx``); float
+    sums round differently."""
     _check_method(method)
     if method == "loop":
         return _prefix_sums_yx(jnp.pad(values, ((1, 0), (1, 0), (0, 0))))
@@ -393,8 +299,8 @@ def rect_sums(
     all at once. The sums are the same either way."""
     height, width = table.shape[0] - 1, table.shape[1] - 1
     r = _clip_columns(rect_columns(rects), width, height)
-    # Flat corner rows, materialised once (see _corner_index): fused, the index
-    # arithmetic was redone for every channel of every corner.
+    # Flat corner rows, materialised once (see _corner_index): fused, XLA would redo the
+    # index arithmetic for every channel of every corner.
     idx = _corner_index(r, width + 1)
     flat = table.reshape(-1, table.shape[-1])
 
@@ -436,7 +342,7 @@ def _lattice_edges(
     return edges(y, h, rows, height), edges(x, w, cols, width)
 
 
-def grid_sums(table: Array, boxes: Array, rows: int, cols: int) -> Array:
+def grid_sums(table: Array, boxes: Array, rows: int, cols: int) -> tuple[Array, Array]:
     """Sums ``[..., rows, cols, c]`` over a ``rows x cols`` grid of equal cells of each
     ``(x, y, w, h)`` box in ``boxes [..., 4]``, from an ``integral_image`` table
     ``[h+1, w+1, c]``, and the cells' pixel counts ``[..., rows, cols]`` (as a second
@@ -446,7 +352,7 @@ def grid_sums(table: Array, boxes: Array, rows: int, cols: int) -> Array:
     clipped to the frame, so the cells partition the box's clipped rect exactly;
     a cell outside the frame is empty (sum 0, count 0). The ``(rows + 1) x
     (cols + 1)`` lattice corners are gathered once and shared by neighbouring
-    cells (``4 rows cols`` corner reads per box would be 2-3x more).
+    cells (instead of ``4 rows cols`` corner reads per box).
     """
     height, width = table.shape[0] - 1, table.shape[1] - 1
     ys, xs = _lattice_edges(boxes, rows, cols, height, width)
@@ -483,20 +389,18 @@ def grid_ncc(
     :func:`grid_sums`, a cell outside the frame has mean 0, a box of uniform
     feature scores 0.
 
-    Laid out for a CPU (the same maths as ``grid_sums`` then a dot product, 2-4x
-    faster at N = 100,000 on 2 cores): the box axis is the minor one (each
-    ``(rows + 1) x (cols + 1)`` lattice corner and each cell is one contiguous
-    vector over the boxes), every channel's corners are gathered from its own
-    plane as scalars and materialised (fused into the cell differences, each
-    corner was gathered four times), the sums over cells are products with
-    small matrices, and the boxes go through in blocks of ``chunk`` (one
-    block's corners fit in cache; ``None``: one block, e.g. on a GPU). Each
-    block's edges arrive as loop-carried buffers (``_chunked(carry_inputs=True)``):
-    sliced in place, the cell areas' broadcast product ran as scalar code, 3.7 of
-    the 13 ms at N = 100,000 (1.0 ms carried). The ``optimization_barrier`` calls
-    below no longer stop XLA:CPU's fusion (jax 0.10 drops them first): the corners
-    are a buffer as the gather's output, the cell means are recomputed by the three
-    fusions that read them.
+    Laid out for a CPU (the same maths as ``grid_sums`` then a dot product): the box
+    axis is the minor one (each ``(rows + 1) x (cols + 1)`` lattice corner and each
+    cell is one contiguous vector over the boxes), every channel's corners are
+    gathered from its own plane as scalars (fused into the cell differences, each
+    corner would be gathered four times), the sums over cells are products with
+    small matrices, and the boxes go through in blocks of ``chunk`` (one block's
+    corners fit in cache; ``None``: one block, e.g. on a GPU). Each block's edges
+    arrive as loop-carried buffers (``_chunked(carry_inputs=True)``), because sliced
+    in place the cell areas' broadcast product compiles to scalar code. XLA:CPU drops
+    the ``optimization_barrier`` calls below before fusion: the corners are a buffer
+    as the gather's output, and the three fusions that read the cell means each
+    recompute them.
     """
     height, width = table.shape[0] - 1, table.shape[1] - 1
     c = table.shape[-1]
@@ -538,9 +442,8 @@ def grid_ncc(
 #: Rects as four int32 arrays ``(x0, y0, x1, y1)`` of one shape ``[N, *C]``: the form the
 #: kernels work in. Callers may pass it instead of a ``[N, *C, 4]`` array (``rect_reduce``,
 #: ``rect_sums``, ``uses_window``): built from a filter's particle columns, no
-#: ``[..., 4]`` stack ever exists. On XLA:CPU stacking corners on a minor axis and taking
-#: them apart again for the corner rows were transposing copies: 7.5 ms of traced kernel time
-#: in an N = 100,000 colour step (2-core Intel Xeon, 2026-11-28).
+#: ``[..., 4]`` stack ever exists, because on XLA:CPU stacking corners on a minor axis
+#: and taking them apart again for the corner rows are transposing copies.
 RectColumns = tuple[Array, Array, Array, Array]
 
 
@@ -622,8 +525,7 @@ def batch_all(flag: Array) -> Array:
     As the predicate of a ``lax.cond`` that chooses between two exact paths to the same
     result (the windowed table or the whole-frame fallback), it keeps the ``cond`` a real
     branch under ``vmap``: with a batched predicate JAX turns ``cond`` into a ``select``
-    that runs both branches for every member, which made a filter vmapped over keys 4x
-    slower than ``lax.map`` over them. Now the batch takes the fast path when every
+    that runs both branches for every member. The batch takes the fast path when every
     member can, and the fallback (exact too) otherwise. Works under ``jit``, nested
     ``vmap`` and ``grad`` (a bool has no tangent).
     """
@@ -695,19 +597,17 @@ def _corner_index(rects, stride: int) -> tuple[Array, Array, Array, Array]:
     """Flat table rows ``int32`` of the corners (x1,y1), (x1,y0), (x0,y1), (x0,y0) of rects
     (``[..., 4]`` or ``RectColumns``): four arrays of the rects' shape.
 
-    Corner-major: each corner's rows are one contiguous vector, so cutting them
-    into chunks moves long runs (a trailing axis of 4 made every chunk copy an
-    element-by-element transpose: 12 of 72 ms of an N = 100k colour step), and
-    separate arrays, not one ``[4, ...]`` stack (the concatenation ran as scalar
-    code: 1-3 ms at N = 100k).
+    Corner-major: each corner's rows are one contiguous vector, so cutting them into
+    chunks moves long runs (with a trailing axis of 4 every chunk copy is an
+    element-by-element transpose), and separate arrays, not one ``[4, ...]`` stack
+    (whose concatenation compiles to scalar code).
     """
     x0, y0, x1, y1 = rect_columns(rects)
     idx = (y1 * stride + x1, y0 * stride + x1, y1 * stride + x0, y0 * stride + x0)
-    # Materialise the indices: fused, the whole index arithmetic (rounding, clipping,
-    # window shift) ran in the gather, once for each of the n_bins outputs of every
-    # rect (5-10x slower at N = 100k). The barrier is a no-op for XLA:CPU's fusion
-    # since jax 0.10 (dropped before fusion); the rows are materialised anyway as
-    # operands of the chunk loop (``_chunked``).
+    # The indices are materialised: fused, the whole index arithmetic (rounding,
+    # clipping, window shift) would run in the gather, once for each of the n_bins
+    # outputs of every rect. XLA:CPU drops the barrier before fusion; the rows are
+    # materialised as operands of the chunk loop (``_chunked``).
     return lax.optimization_barrier(idx)
 
 
@@ -719,12 +619,10 @@ def _corner_counts(table_flat: Array, idx: tuple[Array, ...], n_bins: int) -> Ar
         # Indices are in range by construction (rects clamped to the window).
         return _take(table_flat, idx[k], n_bins)
 
-    # Modular arithmetic in the table's dtype: exact when the true count fits.
-    # The barrier once kept the integer counts out of the caller's reduction, where
-    # the gathers and the conversion ran element by element (N = 100k colour step:
-    # 34 -> 22 ms). XLA:CPU in jax 0.10 drops it before fusion: the gathers,
-    # conversion, sqrt and product now form one fusion, vectorised along the bins,
-    # and the sum over bins is a separate pass (the product is materialised).
+    # Modular arithmetic in the table's dtype: exact when the true count fits. XLA:CPU
+    # drops the barrier before fusion: the gathers, the conversion and the caller's
+    # element-wise terms form one fusion, vectorised along the bins, and the caller's
+    # sum over bins is a separate pass.
     counts = lax.optimization_barrier(row(0) - row(1) - row(2) + row(3))
     return counts.astype(jnp.float32)
 
@@ -742,9 +640,9 @@ def _chunked(
     ``carry_inputs``: each block's inputs are sliced by the previous iteration and
     handed on as loop-carried buffers. XLA:CPU fuses a block's ``dynamic_slice``
     into its consumers and there reloads the slice offset for every element when
-    the consumer also broadcasts (``a[:, None] * b[None]``): such a loop is not
-    vectorised (scalar code, 3-4x slower). Carried inputs are plain buffers; the
-    price is one copy of each block's inputs.
+    the consumer also broadcasts (``a[:, None] * b[None]``), which leaves such a loop
+    scalar code. Carried inputs are plain buffers; the price is one copy of each
+    block's inputs.
     """
     n = args[0].shape[axis[0]]
     if chunk is None or n <= chunk:
@@ -934,71 +832,51 @@ def rect_reduce(
     with_area: bool = False,
     then=None,
 ):
-    """Exact counts of ``rects [N, *C, 4]`` reduced per rect by ``reduce_fn``.
+    """Exact counts of ``rects [N, *C, 4]`` (or ``RectColumns`` ``[N, *C]``) reduced per
+    rect by ``reduce_fn``: the engine behind every histogram here (module docstring).
 
-    ``rects`` may also be ``RectColumns``, four int32 arrays ``(x0, y0, x1, y1)``
-    of shape ``[N, *C]`` (the same rects, no ``[..., 4]`` stack to build and take
-    apart; ``rect_sums`` and ``uses_window`` take them too, ``grid_ncc`` box columns
-    ``(x, y, w, h)``).
+    Clips the rects, counts them with the windowed integral histogram (``window = (wh,
+    ww)``, exact ``lax.cond`` fallback unless ``fallback=False``) or the full-frame one
+    (``window=None``), and applies ``reduce_fn(counts [c, *C, n_bins] float32) -> [c,
+    *C, ...]`` (row-wise) chunk by chunk, so that the ``[N, *C, n_bins]`` counts never
+    exist at once; a custom ``reduce_fn`` computes several per-box scores in one pass.
+    With ``with_area=True`` it is called as ``reduce_fn(counts, area)``, ``area [c, *C]
+    float32`` being each clipped rect's pixel count (the counts' total when every pixel
+    has a bin, without summing the bins). ``origin (oy, ox)`` is dynamic (default:
+    ``window_origin`` of the rects); ``reduce_fn``, ``then`` and the keyword arguments
+    other than ``origin`` are static.
 
-    The engine behind every path here: clips the rects, counts them with the
-    windowed integral histogram (``window = (wh, ww)``, exact ``lax.cond``
-    fallback to the general path unless ``fallback=False``) or the general
-    full-frame one (``window=None``), and applies ``reduce_fn(counts [c, *C,
-    n_bins] float32) -> [c, *C, ...]`` (it must act row-wise) chunk by chunk,
-    so that the ``[N, *C, n_bins]`` counts never exist at once. With
-    ``with_area=True`` it is called as ``reduce_fn(counts, area)``, ``area
-    [c, *C] float32`` being each clipped rect's pixel count: the counts' total
-    when every pixel has a bin in ``[0, n_bins)``, without summing the bins.
-    ``window``, ``n_bins``, ``count_dtype``, ``fallback``, ``chunk``,
-    ``with_area`` and ``reduce_fn`` are static; ``origin (oy, ox)`` is dynamic (default:
-    ``window_origin`` of the rects). A custom ``reduce_fn`` lets a filter
-    compute several per-box scores from one pass over the table.
-
-    ``then(out, count) -> result`` (static) runs after the reduction on the
-    same table, and ``rect_reduce`` returns ``(out, result)``: ``count(rects
-    [M, ..., 4]) -> [M, ..., n_bins] float32`` gives exact histograms of a few
-    more rects that depend on ``out`` (e.g. the histogram of the estimate a
-    filter derives from the particles' scores) without building a second
-    table. On the windowed path, rects that do not lie inside the window are
-    counted by ``box_histograms`` instead (a ``lax.cond``), so they are exact
-    too; the rects need not be clipped.
+    ``then(out, count) -> result`` runs after the reduction on the same table and makes
+    ``rect_reduce`` return ``(out, result)``: ``count(rects [M, ..., 4]) -> [M, ...,
+    n_bins] float32`` gives exact histograms of a few more rects that depend on ``out``
+    (e.g. the estimate a filter derives from the particles' scores) without a second
+    table; on the windowed path those outside the window are counted by
+    ``box_histograms`` instead (a ``lax.cond``).
     """
     fh, fw = bins.shape
     count_dtype = _check_count_dtype(count_dtype)
     rects, single = _clipped_columns(rects, fw, fh)
-
-    def general(rects):
-        return _frame_counts(
-            bins,
-            rects,
-            n_bins=n_bins,
-            chunk=chunk,
-            reduce_fn=reduce_fn,
-            with_area=with_area,
-            then=then,
-        )
-
+    options = {
+        "n_bins": n_bins,
+        "chunk": chunk,
+        "reduce_fn": reduce_fn,
+        "with_area": with_area,
+        "then": then,
+    }
+    general = functools.partial(_frame_counts, bins, **options)
     if window is None:
         out = general(rects)
     else:
         shape, origin = _window_placement(rects, window, origin, (fh, fw))
-
-        def fast(rects):
-            return _window_counts(
-                bins,
-                rects,
-                origin,
-                shape,
-                n_bins=n_bins,
-                dtype=count_dtype,
-                chunk=chunk,
-                reduce_fn=reduce_fn,
-                with_area=with_area,
-                then=then,
-                window_check=True,
-            )
-
+        fast = functools.partial(
+            _window_counts,
+            bins,
+            origin=origin,
+            shape=shape,
+            dtype=count_dtype,
+            window_check=True,
+            **options,
+        )
         if fallback:
             ok = batch_all(window_covers(rects, origin, shape, count_dtype))
             out = lax.cond(ok, fast, general, rects)
@@ -1007,10 +885,6 @@ def rect_reduce(
     if single:
         out = (out[0][0], out[1]) if then is not None else out[0]
     return out
-
-
-# Earlier private name, kept for callers that used it.
-_with_table = rect_reduce
 
 
 def _window_placement(rects, window, origin, frame_shape):
@@ -1047,38 +921,6 @@ def uses_window(
 # ----------------------------------------------------------------------------- histograms
 
 
-def rect_histograms_fast(
-    bins: Array,
-    rects: Array,
-    *,
-    n_bins: int,
-    window: tuple[int, int] | None,
-    origin: Array | None = None,
-    count_dtype=jnp.uint16,
-    fallback: bool = True,
-    chunk: int | None = DEFAULT_CHUNK,
-) -> Array:
-    """Exact histograms ``[N, *C, n_bins] float32`` of ``rects [N, *C, 4] (x0, y0, x1, y1)``.
-
-    The fast windowed path (module docstring). ``window = (wh, ww)``, ``n_bins``,
-    ``count_dtype``, ``fallback`` and ``chunk`` are static; ``origin`` ``(oy, ox)``
-    is dynamic and defaults to ``window_origin`` of the rects. Meant for many
-    rects at once, e.g. the ``k x k`` cells of every particle box
-    (``rects [N, k*k, 4]``). ``window=None`` is the general full-frame path.
-    """
-    return rect_reduce(
-        bins,
-        rects,
-        lambda counts: counts,
-        n_bins=n_bins,
-        window=window,
-        origin=origin,
-        count_dtype=count_dtype,
-        fallback=fallback,
-        chunk=chunk,
-    )
-
-
 def _scatter_counts(bins: Array, rects: Array, n_bins: int) -> Array:
     """Exact counts ``[..., n_bins]`` of clipped ``rects [..., 4]``: one masked scatter-add each."""
     fh, fw = bins.shape
@@ -1100,19 +942,17 @@ def _scatter_counts(bins: Array, rects: Array, n_bins: int) -> Array:
 def box_histograms(bins: Array, rects: Array, n_bins: int) -> Array:
     """Exact histograms ``[N, n_bins] float32`` of ``rects [N, 4] (x0, y0, x1, y1) int32``.
 
-    General, simple path for any rect list (clipped, empty, outside, larger
-    than the frame). Up to ``SCATTER_MAX_RECTS`` rects (a static count) are
-    counted by a masked scatter-add over the frame each; more rects use the
-    general integral path: one full-frame uint16 integral histogram, each rect
-    cut into a few pieces of fewer than 65,536 pixels, the pieces' four-corner
-    counts summed. ``n_bins`` is static.
+    General, simple path for any rect list (clipped, empty, outside, larger than the
+    frame). Up to ``SCATTER_MAX_RECTS`` rects (a static count) are counted by a masked
+    scatter-add over the frame each; more rects by the full-frame integral histogram
+    (``rect_reduce`` with ``window=None``). ``n_bins`` is static.
     """
     rects = jnp.asarray(rects, jnp.int32)
     n_rects = math.prod(rects.shape[:-1])
     if n_rects <= SCATTER_MAX_RECTS:
         fh, fw = bins.shape
         return _scatter_counts(bins, clip_rect(rects, fw, fh), n_bins)
-    return rect_histograms_fast(bins, rects, n_bins=n_bins, window=None)
+    return rect_reduce(bins, rects, lambda counts: counts, n_bins=n_bins)
 
 
 # ----------------------------------------------------------------------------- distances
@@ -1130,6 +970,25 @@ def _normalise(h: Array) -> tuple[Array, Array]:
     return p, total[..., 0] > 0
 
 
+def normalise_counts(h: Array) -> Array:
+    """Counts ``[..., B]`` divided by their sum; a sum below 1 (no pixel, or a histogram
+    already normalised) is left as it is, so that no division by zero occurs."""
+    return h / jnp.maximum(jnp.sum(h, axis=-1, keepdims=True), 1.0)
+
+
+def squared_bhattacharyya(counts: Array, sqrt_q: Array, total: Array) -> Array:
+    """Squared Bhattacharyya distances ``d^2 = 1 - sum_i sqrt(c_i q_i) / sqrt(n)`` (thesis
+    eq. 3.7) of count histograms ``counts [..., B]`` with ``total [...]`` pixels to a
+    normalised reference given as ``sqrt_q [..., B]`` (broadcasting): ``[...]``.
+
+    The ``1 - BC`` form takes two plain reductions that XLA fuses with the corner gathers;
+    float32 cancellation bounds its error to ``|d^2 - d_exact^2| < 2e-6``. Clamped to
+    ``[0, 1]``; an empty histogram (``total = 0``) gives 1, as in OpenCV.
+    """
+    bc = jnp.sum(jnp.sqrt(counts) * sqrt_q, axis=-1) * lax.rsqrt(jnp.maximum(total, 1.0))
+    return jnp.where(total > 0, jnp.clip(1.0 - bc, 0.0, 1.0), 1.0)
+
+
 def bhattacharyya(p: Array, q: Array) -> Array:
     """Bhattacharyya distance of histograms ``p, q [..., n_bins]`` (broadcasting) -> ``[...]``.
 
@@ -1143,155 +1002,3 @@ def bhattacharyya(p: Array, q: Array) -> Array:
     diff = _safe_sqrt(p) - _safe_sqrt(q)
     d = _safe_sqrt(jnp.minimum(0.5 * jnp.sum(diff * diff, axis=-1), 1.0))
     return jnp.where(p_ok & q_ok, d, 1.0)
-
-
-def _distances_from_counts(counts: Array, sqrt_q: Array, q_ok: Array) -> Array:
-    """Distances of count histograms ``[..., B]`` to a normalised ref given as ``sqrt(q)``.
-
-    ``1 - BC`` form: two plain reductions that XLA fuses with the corner
-    gathers (the Hellinger form is 2x slower here). Near ``d = 0`` float32
-    cancellation limits it to ``|d - d_exact| < 1e-3`` (``d^2`` to 1e-6).
-    """
-    total = jnp.sum(counts, axis=-1)
-    bc = jnp.sum(jnp.sqrt(counts) * sqrt_q, axis=-1) * lax.rsqrt(jnp.maximum(total, 1.0))
-    d = jnp.sqrt(jnp.clip(1.0 - bc, 0.0, 1.0))
-    return jnp.where((total > 0) & q_ok, d, 1.0)
-
-
-def _prepare_ref(ref_hist: Array) -> tuple[Array, Array]:
-    q, q_ok = _normalise(jnp.asarray(ref_hist, jnp.float32))
-    return jnp.sqrt(q), q_ok
-
-
-def rect_distances(
-    bins: Array,
-    rects: Array,
-    ref_hist: Array,
-    *,
-    n_bins: int,
-    window: tuple[int, int] | None = None,
-    origin: Array | None = None,
-    count_dtype=jnp.uint16,
-    fallback: bool = True,
-    chunk: int | None = DEFAULT_CHUNK,
-) -> Array:
-    """Bhattacharyya distances ``[N, *C]`` of ``rects [N, *C, 4]`` to ``ref_hist [*C, n_bins]``.
-
-    ``ref_hist`` broadcasts against the rect histograms (e.g. one reference
-    per grid cell, shared by all particles); it is normalised here. Exact
-    counts, same static options as ``rect_histograms_fast``.
-    """
-    sqrt_q, q_ok = _prepare_ref(ref_hist)
-    return rect_reduce(
-        bins,
-        rects,
-        lambda counts: _distances_from_counts(counts, sqrt_q, q_ok),
-        n_bins=n_bins,
-        window=window,
-        origin=origin,
-        count_dtype=count_dtype,
-        fallback=fallback,
-        chunk=chunk,
-    )
-
-
-def box_distances(
-    bins: Array,
-    boxes: Array,
-    ref_hist: Array,
-    *,
-    n_bins: int,
-    window: tuple[int, int] | None = None,
-    count_dtype=jnp.uint16,
-    fallback: bool = True,
-    chunk: int | None = DEFAULT_CHUNK,
-) -> Array:
-    """Distances ``[N] float32`` of ``boxes [N, 4] (x, y, w, h)`` to ``ref_hist [n_bins]``.
-
-    The particle-filter likelihood kernel: exact histogram of each box's rect
-    (``boxes.xywh_to_rect``), Bhattacharyya distance to the (normalised)
-    reference. Boxes may all differ in size. Pass a static ``window`` (e.g.
-    ``suggest_window``) for speed; the window is placed around the boxes each
-    call and results stay exact (module docstring).
-    """
-    return rect_distances(
-        bins,
-        xywh_to_rect(boxes),
-        ref_hist,
-        n_bins=n_bins,
-        window=window,
-        count_dtype=count_dtype,
-        fallback=fallback,
-        chunk=chunk,
-    )
-
-
-# ----------------------------------------------------------------------------- shared-size map
-
-
-def shared_size_distance_map(
-    bins: Array,
-    rect_size: Array,
-    map_origin: Array,
-    ref_hist: Array,
-    *,
-    n_bins: int,
-    map_shape: tuple[int, int],
-    max_rect: tuple[int, int],
-) -> Array:
-    """Exact distances ``[ph, pw]`` of one rect size at every position of a grid.
-
-    Entry ``[i, j]`` is the distance of the rect ``(x0, y0, x0 + rw, y0 + rh)``
-    with ``x0 = map_origin[1] + j``, ``y0 = map_origin[0] + i`` (clipped to the
-    frame). ``rect_size = (rh, rw)`` int32 is dynamic and clamped to the
-    static ``max_rect = (mh, mw)``; ``map_shape = (ph, pw)`` is static. The
-    table covers ``(ph + mh) x (pw + mw)`` pixels; rects partly or fully
-    outside the frame are exact (out-of-frame pixels are not counted).
-
-    A box ``(x, y, w, h)`` with integer ``w, h`` has the rect
-    ``(x0, y0, x0 + w, y0 + h)``, ``x0 = floor(x + 0.5)``: a filter whose
-    particles share an integer box size (fixed-size state) looks its particles
-    up with ``distances_from_map``. Cost: one table over the map region plus
-    four dense shifted slices, independent of N.
-    """
-    fh, fw = bins.shape
-    ph, pw = map_shape
-    mh, mw = max_rect
-    rh, rw = rect_size[0].astype(jnp.int32), rect_size[1].astype(jnp.int32)
-    oy, ox = map_origin[0].astype(jnp.int32), map_origin[1].astype(jnp.int32)
-    # Table over the padded region [oy, oy + ph + mh) x [ox, ox + pw + mw), built from a
-    # padded frame so that rects partly outside the frame count only in-frame pixels.
-    th, tw = ph + mh, pw + mw
-    # Pixels outside the frame get bin -1 (not counted), so rects partly outside the
-    # frame count exactly their in-frame pixels, as clipping would.
-    ys = oy + jnp.arange(th)
-    xs = ox + jnp.arange(tw)
-    local = jnp.take(bins, jnp.clip(ys, 0, fh - 1), axis=0)
-    local = jnp.take(local, jnp.clip(xs, 0, fw - 1), axis=1)
-    valid = ((ys >= 0) & (ys < fh))[:, None] & ((xs >= 0) & (xs < fw))[None, :]
-    local = jnp.where(valid, local, -1)
-    dtype = jnp.uint16 if mh * mw < _U16_LIMIT else jnp.int32
-    table = _histogram_table(local, n_bins, dtype)
-    rh = jnp.clip(rh, 0, mh)
-    rw = jnp.clip(rw, 0, mw)
-
-    def corner(dy, dx):
-        return lax.dynamic_slice(table, (dy, dx, 0), (ph, pw, n_bins))
-
-    counts = (corner(rh, rw) - corner(0, rw) - corner(rh, 0) + corner(0, 0)).astype(jnp.float32)
-    sqrt_q, q_ok = _prepare_ref(ref_hist)
-    return _distances_from_counts(counts, sqrt_q, q_ok)
-
-
-def distances_from_map(dist_map: Array, map_origin: Array, top_left: Array) -> Array:
-    """Look up ``[N]`` distances of rects with integer corners ``top_left [N, 2] (x0, y0)``.
-
-    ``dist_map`` and ``map_origin (oy, ox)`` come from ``shared_size_distance_map``;
-    positions outside the map get ``d = 1`` (the worst distance).
-    """
-    ph, pw = dist_map.shape
-    i = top_left[:, 1] - map_origin[0]
-    j = top_left[:, 0] - map_origin[1]
-    inside = (i >= 0) & (i < ph) & (j >= 0) & (j < pw)
-    d = dist_map[jnp.clip(i, 0, ph - 1), jnp.clip(j, 0, pw - 1)]
-    return jnp.where(inside, d, 1.0)

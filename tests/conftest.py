@@ -1,20 +1,17 @@
 """Shared test set-up.
 
-JAX's persistent compilation cache is switched on for the test session only
-(never by the library): many tests build filters with identical configs, and
-the cache turns their repeated XLA compiles into look-ups.
+JAX's persistent compilation cache is switched on for the test session only (never by the
+library): many tests build filters with identical configs, and the cache turns their
+repeated XLA compiles into look-ups.
 
-The suite's time is mostly XLA compiling (about 250 programs, each jitted filter a
-few thousand operations), so the tests compile with cheaper XLA CPU settings
-(``TEST_XLA_FLAGS``: no LLVM optimisation, loop fusions emitted the older way).
-The same jaxprs run; only code generation differs. LLVM level 1 instead of XLA's
-default 3 cut the RGB-D toy scan's compile from 15-17 s to 10-12 s (run 0.6 -> 0.75 s);
-level 0 instead of 1 cut the suite's summed test durations from 1,681 to 1,516 s
-(cold caches, 2 workers, 2026-11-29), but made the few tests whose running, not
-compiling, dominates up to 3.5x slower. Those are marked ``run_bound`` and compile at level 1
+The suite's time is mostly XLA compiling, so the tests compile with cheaper XLA CPU
+settings (``TEST_XLA_FLAGS``: no LLVM optimisation, loop fusions emitted the older way):
+the same jaxprs run, only code generation differs. The few tests whose running, not
+compiling, dominates are marked ``run_bound`` and compile at LLVM level 1
 (``RUN_BOUND_OPTIONS``, through ``jax.jit``'s ``compiler_options``; a module-scoped
 fixture uses ``run_bound_jit``). Set ``CPF_TEST_XLA_DEFAULTS=1`` to test with XLA's
-defaults (what a user gets).
+defaults (what a user gets). The measurements behind these choices are in
+``tests/TIMING.md``.
 """
 
 from __future__ import annotations
@@ -33,9 +30,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-#: Compile options of the ``run_bound`` tests: LLVM level 1 (measured cold, level 0 ->
-#: 1: the tuning tests 120 -> 35 s and 63 -> 32 s, the AR1 size-velocity test 50 -> 10 s,
-#: the cascade's grid run with its lost-box re-run 105 -> 62 s).
+#: Compile options of the ``run_bound`` tests: LLVM level 1.
 RUN_BOUND_OPTIONS = {"xla_backend_optimization_level": 1} if CHEAP_COMPILES else None
 _JIT = jax.jit
 
@@ -65,12 +60,9 @@ jax.config.update("jax_compilation_cache_dir", str(ROOT / ".pytest_cache" / "jax
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
-#: Test files heaviest first (CPU seconds of a cold run on 2 cores, 2026-11-26: 325, 261,
-#: 177, 152, 127, 111, 109, 106; every other file takes under 65). ``make test`` runs
-#: pytest-xdist with ``--dist loadfile --no-loadscope-reorder``, which hands out whole files
-#: in this order, so the two workers finish within about a file of each other. xdist's
-#: default order (most tests first) left the notebooks (3 tests, 152 s) for last, and one
-#: worker idle for about 100 s at the end.
+#: Test files heaviest first. ``make test`` runs pytest-xdist with ``--dist loadfile
+#: --no-loadscope-reorder``, which hands out whole files in this order, so the workers
+#: finish within about a file of each other.
 HEAVY_FIRST = (
     "test_cascade.py",
     "test_rgbd.py",

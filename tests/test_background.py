@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from checks import check_kernel
 from scipy import stats
 
 from cpf_jax.kernels.background import (
@@ -34,6 +37,7 @@ from cpf_jax.kernels.cells import (
 from cpf_jax.kernels.histogram import box_histograms
 
 H, W, K = 24, 32, 7
+EXACT = {"rtol": 0.0, "atol": 0.0}
 NZ, ZLO, ZHI = 64, 400.0, 10000.0
 REL_BIN = (ZHI / ZLO) ** (1 / NZ) - 1  # 5.2 % per bin
 
@@ -47,27 +51,43 @@ def _stack(seed: int) -> tuple[np.ndarray, np.ndarray]:
     return colour, depth
 
 
+def _nan_quiet(fn, *args, **kwargs):
+    """A NumPy NaN reduction without its warning for all-NaN pixels (the never-measured
+    corner), which the kernels report as 0."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nan_to_num(fn(*args, **kwargs), nan=0.0)
+
+
 # -- background -------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("mode", ["plain", "jit", "vmap"])
-def test_median_background_matches_numpy(mode):
+def test_median_background_matches_numpy():
     colour, depth = _stack(0)
-    fn = median_background
-    if mode == "jit":
-        fn = jax.jit(median_background)
-    if mode == "vmap":
-        batch = jax.vmap(median_background)(
-            jnp.stack([colour, colour[::-1]]), jnp.stack([depth, depth[::-1]])
-        )
-        bg = Background(batch.colour[1], batch.depth[1])  # the median ignores order
-    else:
-        bg = fn(colour, depth)
-    np.testing.assert_allclose(np.asarray(bg.colour), np.median(colour, axis=0), atol=1e-4)
-    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):  # all-NaN corner
-        ref = np.nanmedian(np.where(depth > 0, depth, np.nan).astype(np.float64), axis=0)
-    np.testing.assert_allclose(np.asarray(bg.depth), np.nan_to_num(ref, nan=0.0), rtol=1e-6)
-    assert (np.asarray(bg.depth)[:2, :2] == 0).all()
+    # The second batch member is the same frames in reverse order: the median ignores it.
+    batch = [(colour, depth), (colour[::-1], depth[::-1])]
+    check_kernel(
+        lambda c, d: median_background(c, d).colour,
+        lambda c, d: np.median(c, axis=0),
+        batch[0],
+        batch=batch,
+        rtol=1e-7,
+        atol=1e-4,
+    )
+
+    def depth_reference(c, d):
+        measured = np.where(d > 0, d, np.nan).astype(np.float64)
+        return _nan_quiet(np.nanmedian, measured, axis=0)
+
+    check_kernel(
+        lambda c, d: median_background(c, d).depth,
+        depth_reference,
+        batch[0],
+        batch=batch,
+        rtol=1e-6,
+        atol=0.0,
+    )
+    assert (np.asarray(median_background(colour, depth).depth)[:2, :2] == 0).all()
 
 
 def test_masked_median_even_and_odd_counts():
@@ -86,23 +106,17 @@ def _fg_reference(colour, depth, bg_c, bg_d, abs_=150.0, rel=0.05, cthr=40.0):
     return np.where(both, nearer, col)
 
 
-@pytest.mark.parametrize("mode", ["jit", "vmap"])
-def test_foreground_mask_matches_numpy(mode):
+def test_foreground_mask_matches_numpy():
     colour, depth = _stack(1)
     bg = median_background(colour, depth)
-    frames_c, frames_d = colour[:3], depth[:3]
-    if mode == "jit":
-        got = np.stack(
-            [
-                np.asarray(jax.jit(foreground_mask)(c, d, bg))
-                for c, d in zip(frames_c, frames_d, strict=True)
-            ]
-        )
-    else:
-        got = np.asarray(jax.vmap(foreground_mask, in_axes=(0, 0, None))(frames_c, frames_d, bg))
-    for i in range(3):
-        want = _fg_reference(frames_c[i], frames_d[i], np.asarray(bg.colour), np.asarray(bg.depth))
-        np.testing.assert_array_equal(got[i], want)
+    bg_c, bg_d = np.asarray(bg.colour), np.asarray(bg.depth)
+    batch = [(colour[i], depth[i], bg_c, bg_d) for i in range(3)]
+    check_kernel(
+        lambda c, d, b_c, b_d: foreground_mask(c, d, Background(b_c, b_d)),
+        _fg_reference,
+        batch[0],
+        batch=batch,
+    )
 
 
 def test_foreground_rules():
@@ -116,33 +130,35 @@ def test_foreground_rules():
     np.testing.assert_array_equal(fg, [[True, False, True, False]])
 
 
-@pytest.mark.parametrize("mode", ["jit", "vmap"])
 @pytest.mark.parametrize("stride", [1, 3])
-def test_foreground_shares_match_numpy(mode, stride):
-    colour, depth = _stack(3)
-    depth[:, 5:9, 5:9] = 0  # never measured: colour decides there
-    c = colour[:, ::stride, ::stride].astype(np.float64)
-    z = depth[:, ::stride, ::stride].astype(np.float64)
-    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):  # all-NaN pixels
-        far = np.nan_to_num(np.nanquantile(np.where(z > 0, z, np.nan), 0.8, axis=0))
-    col = np.median(c, axis=0)
-    want = []
-    for i in range(K):
-        both = (z[i] > 0) & (far > 0)
-        neither = (z[i] == 0) & (far == 0)
-        nearer = (far - z[i]) > np.maximum(150.0, 0.05 * far)
-        col_fg = np.abs(c[i] - col).max(-1) > 40.0
-        want.append(np.where(both, nearer, neither & col_fg).mean())
-    fn = jax.jit(foreground_shares, static_argnames="stride")
-    if mode == "jit":
-        got = np.asarray(fn(colour, depth, stride=stride))
-    else:
-        batch = jax.vmap(lambda a, b: foreground_shares(a, b, stride=stride))(
-            jnp.stack([colour, colour]), jnp.stack([depth, depth])
-        )
-        got = np.asarray(batch[1])
+def test_foreground_shares_match_numpy(stride):
+    def reference(colour, depth):
+        c = colour[:, ::stride, ::stride].astype(np.float64)
+        z = depth[:, ::stride, ::stride].astype(np.float64)
+        far = _nan_quiet(np.nanquantile, np.where(z > 0, z, np.nan), 0.8, axis=0)
+        col = np.median(c, axis=0)
+        want = []
+        for i in range(K):
+            both = (z[i] > 0) & (far > 0)
+            neither = (z[i] == 0) & (far == 0)
+            nearer = (far - z[i]) > np.maximum(150.0, 0.05 * far)
+            col_fg = np.abs(c[i] - col).max(-1) > 40.0
+            want.append(np.where(both, nearer, neither & col_fg).mean())
+        return np.asarray(want)
+
+    batch = [_stack(3), _stack(6)]
+    for _, depth in batch:
+        depth[:, 5:9, 5:9] = 0  # never measured: colour decides there
+    want = reference(*batch[0])
     assert 0 < min(want) and max(want) < 1
-    np.testing.assert_allclose(got, want, atol=1e-6)
+    check_kernel(
+        lambda c, d: foreground_shares(c, d, stride=stride),
+        reference,
+        batch[0],
+        batch=batch,
+        rtol=1e-7,
+        atol=1e-6,
+    )
 
 
 @pytest.mark.parametrize("q", [0.0, 0.3, 0.5, 0.8, 1.0])
@@ -154,31 +170,27 @@ def test_masked_quantile_matches_nanquantile(q):
     np.testing.assert_allclose(np.asarray(got), np.nan_to_num(ref, nan=0.0), rtol=1e-6)
 
 
-@pytest.mark.parametrize("mode", ["jit", "vmap"])
-def test_quiet_frames_rule(mode):
-    share = jnp.array([0.30, 0.001, 0.20, 0.004, 0.02, 0.25, 0.0, 0.011, 0.006, 0.40])
+def test_quiet_frames_rule():
+    share = np.array([0.30, 0.001, 0.20, 0.004, 0.02, 0.25, 0.0, 0.011, 0.006, 0.40], np.float32)
 
-    def pick(s, n_max, n_min):
-        if mode == "jit":
-            idx, count = jax.jit(quiet_frames, static_argnums=(1, 2))(s, n_max, n_min)
-        else:
-            idx, count = jax.vmap(lambda x: quiet_frames(x, n_max, n_min))(jnp.stack([s, s]))
-            idx, count = idx[1], count[1]
-        idx = np.asarray(idx)
-        assert np.all(idx[int(count) :] == -1)
-        return idx[: int(count)].tolist()
+    def expect(s, n_max, n_min, picked):
+        """``quiet_frames(s, n_max, n_min)`` picks ``picked``: the indices in ascending
+        order, padded with -1 to ``n_max``, and their count."""
+        s = np.asarray(s, np.float32)
+        want = (np.array(picked + [-1] * (n_max - len(picked)), np.int32), len(picked))
+        check_kernel(lambda x: quiet_frames(x, n_max, n_min), lambda x: want, (s,), **EXACT)
 
     # Within 0.01 of the quietest (0.0): frames 1, 3, 6, 8; frame 7 (0.011) is not.
-    assert pick(share, 8, 2) == [1, 3, 6, 8]
-    assert pick(share, 3, 2) == [1, 3, 6]  # at most the 3 quietest
-    assert pick(share, 8, 6) == [1, 3, 4, 6, 7, 8]  # at least 6
+    expect(share, 8, 2, [1, 3, 6, 8])
+    expect(share, 3, 2, [1, 3, 6])  # at most the 3 quietest
+    expect(share, 8, 6, [1, 3, 4, 6, 7, 8])  # at least 6
     # Up to twice the quietest share plus the margin: 2 * 0.02 + 0.01 = 0.05.
-    assert pick(jnp.array([0.048, 0.02, 0.049, 0.052, 0.3]), 8, 1) == [0, 1, 2]
+    expect([0.048, 0.02, 0.049, 0.052, 0.3], 8, 1, [0, 1, 2])
     # Ties go to the earlier frame; n_max above the frame count pads with -1.
-    assert pick(jnp.full((4,), 0.5), 6, 1) == [0, 1, 2, 3]
-    assert pick(jnp.array([0.5, 0.1, 0.1, 0.9]), 1, 1) == [1]
+    expect(np.full((4,), 0.5), 6, 1, [0, 1, 2, 3])
+    expect([0.5, 0.1, 0.1, 0.9], 1, 1, [1])
     with pytest.raises(ValueError, match="n_min <= n_max"):
-        quiet_frames(share, 2, 3)
+        quiet_frames(jnp.asarray(share), 2, 3)
 
 
 def test_quiet_frames_find_the_empty_room_a_median_of_all_frames_misses():
@@ -297,25 +309,34 @@ def test_depth_bins_agree_with_edges():
     assert int(depth_bin_index(jnp.asarray(z), jnp.asarray(mask), NZ, ZLO, ZHI)[0, 1]) == -1
 
 
-@pytest.mark.parametrize("mode", ["jit", "vmap"])
-def test_histogram_median_within_stated_tolerance_of_numpy(mode):
-    samples = _cell_depths(3)
-    counts = jnp.asarray(_counts(samples))
-    fn = jax.jit(lambda c: histogram_quantile(c, NZ, ZLO, ZHI))
-    if mode == "vmap":
-        med, total = jax.vmap(lambda c: histogram_quantile(c, NZ, ZLO, ZHI))(counts)
-    else:
-        med, total = fn(counts)
-    med = np.asarray(med)
-    np.testing.assert_array_equal(np.asarray(total), [len(z) for z in samples])
+def test_histogram_median_within_stated_tolerance_of_numpy():
+    sample_sets = [_cell_depths(3), _cell_depths(6)]
+    batch = [(_counts(z),) for z in sample_sets]
+    # The samples behind each batch member's counts (the references need them; the
+    # kernel sees the counts only).
+    samples = {id(c): z for (c,), z in zip(batch, sample_sets, strict=True)}
+
+    def median(c):
+        return histogram_quantile(c, NZ, ZLO, ZHI)[0]
+
+    def total(c):
+        return histogram_quantile(c, NZ, ZLO, ZHI)[1]
+
+    def sizes(c):
+        return np.array([len(z) for z in samples[id(c)]])
+
+    def lower_median(c):
+        return np.array([np.sort(z)[(len(z) - 1) // 2] for z in samples[id(c)]])
+
+    check_kernel(total, sizes, batch[0], batch=batch, **EXACT)
     # Stated bound (kernels.cells): within one bin (5.2 %) of the lower median, which is
-    # np.median for odd counts ...
-    lower = np.array([np.sort(z)[(len(z) - 1) // 2] for z in samples])
-    assert (np.abs(med - lower) <= REL_BIN * lower + 1e-3).all()
+    # np.median for odd counts, i.e. |med - lower| <= REL_BIN * lower + 1e-3 ...
+    check_kernel(median, lower_median, batch[0], batch=batch, rtol=REL_BIN, atol=1e-3)
     # ... and a small fraction of a bin from np.median on cells with enough pixels.
-    ref = np.array([np.median(z) for z in samples])
+    med = np.asarray(median(batch[0][0]))
+    ref = np.array([np.median(z) for z in sample_sets[0]])
     rel = np.abs(med - ref) / ref
-    big = np.array([len(z) >= 20 for z in samples])
+    big = np.array([len(z) >= 20 for z in sample_sets[0]])
     assert np.median(rel[big]) < 0.25 * REL_BIN and rel[big].max() < REL_BIN
 
 
@@ -339,8 +360,7 @@ def test_histogram_quantile_empty_and_fraction_below():
     assert float(histogram_fraction_below(empty, jnp.float32(3000), NZ, ZLO, ZHI)) == 0.0
 
 
-@pytest.mark.parametrize("mode", ["jit", "vmap"])
-def test_strip_counts_equal_the_histogram_path_and_numpy(mode):
+def test_strip_counts_equal_the_histogram_path_and_numpy():
     """Foreground and not-nearer counts of rects from the strip table against a NumPy loop
     (foreground: exact) and against ``total * (1 - histogram_fraction_below)`` of each
     rect's exact depth histogram (to float rounding), for thresholds below, inside and
@@ -366,40 +386,41 @@ def test_strip_counts_equal_the_histogram_path_and_numpy(mode):
         table, frac = strip_table(colour_bins, n_colour, depth_bins, thr, NZ, ZLO, ZHI)
         return strip_counts(table, frac, jnp.asarray(rects))
 
-    if mode == "jit":
-        got = [jax.jit(counts)(jnp.float32(t)) for t in thresholds]
-    else:
-        fg_all, far_all = jax.vmap(counts)(jnp.asarray(thresholds))
-        got = list(zip(fg_all, far_all, strict=True))
     depth_hist = np.asarray(box_histograms(jnp.asarray(depth_bins), jnp.asarray(rects), NZ))
     total = depth_hist.sum(-1)
-    for thr, (fg, far) in zip(thresholds, got, strict=True):
-        ref_fg = []
-        for x0, y0, x1, y1 in rects:
-            x0, x1 = np.clip([x0, x1], 0, W)
-            y0, y1 = np.clip([y0, y1], 0, H)
-            cut = colour_bins[y0:y1, x0:x1]
-            ref_fg.append(((cut >= 0) & (cut < n_colour)).sum())
-        np.testing.assert_array_equal(np.asarray(fg), ref_fg)
+    ref_fg = []
+    for x0, y0, x1, y1 in rects:
+        x0, x1 = np.clip([x0, x1], 0, W)
+        y0, y1 = np.clip([y0, y1], 0, H)
+        cut = colour_bins[y0:y1, x0:x1]
+        ref_fg.append(((cut >= 0) & (cut < n_colour)).sum())
+
+    def reference(thr):
+        # Foreground: exact (integer counts, the tolerance is below 1); far: to rounding.
         near = np.asarray(histogram_fraction_below(jnp.asarray(depth_hist), thr, NZ, ZLO, ZHI))
-        np.testing.assert_allclose(np.asarray(far), total * (1.0 - near), atol=1e-3)
+        return np.asarray(ref_fg), total * (1.0 - near)
+
+    batch = [(t,) for t in thresholds]
+    check_kernel(counts, reference, batch[0], batch=batch, rtol=1e-7, atol=1e-3)
+    got = [jax.jit(counts)(t) for t in thresholds]
     assert np.asarray(got[0][1]).max() > 0  # every counted pixel is farther than 100 mm
     np.testing.assert_allclose(np.asarray(got[0][1]), total, atol=1e-3)
     np.testing.assert_array_equal(np.asarray(got[-1][1]), 0.0)  # all nearer than 20 m
     assert (np.asarray(got[0][0])[:4] == 0).all()  # empty and outside rects count nothing
 
 
-@pytest.mark.parametrize("mode", ["jit", "vmap"])
-def test_beta_log_density_matches_scipy(mode):
+def test_beta_log_density_matches_scipy():
     r = np.linspace(0.01, 0.99, 25).astype(np.float32)
     a = np.array([0.8, 1.0, 3.5, 7.9], np.float32)
     b = np.array([2.3, 1.0, 7.9, 1.5], np.float32)
-    if mode == "jit":
-        got = jax.jit(beta_log_density)(r[:, None], a, b)
-    else:
-        got = jax.vmap(beta_log_density, in_axes=(0, None, None))(r[:, None], a, b)
-    want = stats.beta.logpdf(r[:, None].astype(np.float64), a, b)
-    np.testing.assert_allclose(np.asarray(got), want, rtol=2e-4, atol=2e-4)
+    check_kernel(
+        beta_log_density,
+        lambda r, a, b: stats.beta.logpdf(np.asarray(r, np.float64), a, b),
+        (r[:, None], a, b),
+        batch=[(r[i, None], a, b) for i in range(len(r))],
+        rtol=2e-4,
+        atol=2e-4,
+    )
     # Ratios of exactly 0 or 1 are clipped, never -inf / nan.
     edge = np.asarray(beta_log_density(jnp.array([0.0, 1.0]), 3.5, 7.9))
     assert np.isfinite(edge).all()

@@ -19,14 +19,14 @@ from cpf_jax.cascade import (
     check_points,
     default_cascade_params,
     find_body_points,
-    track_cascade,
 )
 from cpf_jax.cli import JOINT_DEPTH_OFFSET_MM, JOINTS, main
 from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params
+from cpf_jax.filter import BOX_INFO_FIELDS, Context, track
 from cpf_jax.io import read_results
 from cpf_jax.kernels.background import median_background
 from cpf_jax.kernels.boxes import iou
-from cpf_jax.points import PointFilterConfig
+from cpf_jax.points import PointConfig
 from cpf_jax.rgbd import RGBDConfig
 from cpf_jax.synthetic import make_sequence
 from cpf_jax.types import Frame
@@ -49,13 +49,14 @@ def walk():
 def _config(seq, variant="grid-occlusion", n_box=150, n_points=64):
     box = RGBDConfig(variant=variant, n_particles=n_box)
     box = box.with_window(tuple(float(v) for v in seq.boxes[0, 2:]), seq.colour.shape[1:3])
-    return CascadeConfig(box=box, points=PointFilterConfig(n_particles=n_points))
+    return CascadeConfig(box=box, points=PointConfig(n_particles=n_points))
 
 
 def _params(config):
     p = default_cascade_params(config)
     offset = jnp.asarray(JOINT_DEPTH_OFFSET_MM, jnp.float32)
-    return p._replace(points=p.points._replace(joint_depth_offset=offset))
+    estimate = p.points.estimate._replace(joint_depth_offset=offset)
+    return p._replace(points=p.points._replace(estimate=estimate))
 
 
 @pytest.fixture(scope="module")
@@ -66,16 +67,17 @@ def grid_run(walk):
     frames = Frame(jnp.asarray(seq.colour), jnp.asarray(seq.depth))
     pts = jnp.asarray(seq.joints2d[0, idx] + 0.5)
     box = jnp.asarray(seq.boxes[0])
+    context = Context(background=bg, points=pts)
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
     # Frames are an argument: the lost-box test below runs other frames of the same shape
     # through this one compiled program.
     run = run_bound_jit(
         jax.vmap(
-            lambda k, frames: track_cascade(filt, params, k, frames, box, pts, bg)[1],
+            lambda k, frames: track(filt, params, k, frames, box, context)[1],
             in_axes=(0, None),
         )
     )
-    return jax.device_get(run(keys, frames)), (filt, params, frames, box, pts, bg, keys, run)
+    return jax.device_get(run(keys, frames)), (filt, params, frames, box, context, keys, run)
 
 
 def test_cascade_tracks_box_and_body_points(walk, grid_run):
@@ -83,7 +85,7 @@ def test_cascade_tracks_box_and_body_points(walk, grid_run):
     info, _ = grid_run
     gt_boxes = seq.boxes[1:]
     for k in range(2):
-        ious = np.asarray(iou(jnp.asarray(info.box.estimate[k]), jnp.asarray(gt_boxes)))
+        ious = np.asarray(iou(jnp.asarray(info.estimate[k]), jnp.asarray(gt_boxes)))
         assert np.mean(ious >= 0.5) >= 0.9, ious
     err = np.linalg.norm(info.points.mean3d - seq.joints3d[1:, idx][None], axis=-1)
     assert np.isfinite(err).all()
@@ -97,9 +99,14 @@ def test_cascade_tracks_box_and_body_points(walk, grid_run):
 
 def test_layer2_works_in_layer1_box(grid_run):
     info, _ = grid_run
-    est, lost, used = info.box.estimate, info.box.lost, info.box_used
+    est, lost, used = info.estimate, info.lost, info.box_used
     assert not lost.any()  # nothing hides the walker: layer 2 gets layer 1's estimate
     np.testing.assert_array_equal(used, est)
+    # The cascade's info starts as every box filter's does, with layer 1's fields.
+    assert info._fields[: len(BOX_INFO_FIELDS)] == BOX_INFO_FIELDS
+    for name in BOX_INFO_FIELDS:
+        np.testing.assert_array_equal(getattr(info, name), getattr(info.layer1, name))
+    assert not np.array_equal(info.box, info.estimate)  # the report is the pixels' box
 
 
 # A second 45-s compile of the grid cascade, run with -m slow. CI runs the cascade under
@@ -107,9 +114,9 @@ def test_layer2_works_in_layer1_box(grid_run):
 # layer's own jitted steps).
 @pytest.mark.slow
 def test_cascade_jit_equals_vmap(grid_run):
-    info, (filt, params, frames, box, pts, bg, keys, _) = grid_run
-    one = jax.jit(lambda k: track_cascade(filt, params, k, frames, box, pts, bg)[1])(keys[1])
-    np.testing.assert_allclose(one.box.estimate, info.box.estimate[1], rtol=1e-5, atol=1e-2)
+    info, (filt, params, frames, box, context, keys, _) = grid_run
+    one = jax.jit(lambda k: track(filt, params, k, frames, box, context)[1])(keys[1])
+    np.testing.assert_allclose(one.estimate, info.estimate[1], rtol=1e-5, atol=1e-2)
     np.testing.assert_allclose(one.points.mean, info.points.mean[1], rtol=1e-5, atol=1e-2)
 
 
@@ -127,7 +134,7 @@ def test_lost_box_keeps_layer2_on_last_box(walk, grid_run):
     infos = jax.device_get(run(keys, frames))
     for k in range(len(keys)):
         info = jax.tree.map(lambda a, k=k: a[k], infos)
-        lost = info.box.lost
+        lost = info.lost
         assert not lost[: gone - 1].any() and lost[gone - 1 :].sum() >= 3, lost
         used = info.box_used
         for t in np.flatnonzero(lost):
@@ -143,13 +150,12 @@ def test_rgb_variant_box_is_the_colour_layer(walk):
     colour_cfg = ColourConfig(n_particles=64).with_window(
         tuple(float(v) for v in seq.boxes[0, 2:]), seq.colour.shape[1:3]
     )
-    box_cfg = RGBDConfig(variant="rgb", n_particles=64, colour=colour_cfg, window=colour_cfg.window)
-    config = CascadeConfig(box=box_cfg, points=PointFilterConfig(n_particles=16))
+    config = CascadeConfig(box=colour_cfg, points=PointConfig(n_particles=16))
     filt, params = build_cascade(config), default_cascade_params(config)
     frames = Frame(jnp.asarray(seq.colour[:n]), jnp.asarray(seq.depth[:n]))
     pts = jnp.asarray(seq.joints2d[0, idx] + 0.5)
     box = jnp.asarray(seq.boxes[0])
-    _, info = jax.jit(lambda k: track_cascade(filt, params, k, frames, box, pts))(
+    _, info = jax.jit(lambda k: track(filt, params, k, frames, box, Context(points=pts)))(
         jax.random.PRNGKey(5)
     )
 
@@ -165,7 +171,8 @@ def test_rgb_variant_box_is_the_colour_layer(walk):
             cparams, jax.random.split(k)[0], state, Frame(frames.colour[t + 1], frames.depth[t + 1])
         )
         # Equal up to float32 rounding (two programs compiled apart).
-        np.testing.assert_allclose(info.box.estimate[t], ci.estimate, rtol=2e-6, atol=1e-4)
+        np.testing.assert_allclose(info.estimate[t], ci.estimate, rtol=2e-6, atol=1e-4)
+        np.testing.assert_allclose(info.box[t], ci.box, rtol=2e-6, atol=1e-4)
     assert info.points.mean.shape == (n - 1, len(JOINTS), 2)
     assert np.isfinite(info.points.mean).all()
 
@@ -243,8 +250,13 @@ def test_check_points_accepts_points_inside():
 def test_config_errors():
     with pytest.raises(ValueError, match="box_source"):
         CascadeConfig(box_source="middle")
-    with pytest.raises(TypeError, match="RGBDConfig"):
-        CascadeConfig(box=ColourConfig())
+    # Layer 1 is any box filter (the colour layer or the RGB-D filter), layer 2 the points.
+    with pytest.raises(TypeError, match="ColourConfig or an RGBDConfig"):
+        CascadeConfig(box=PointConfig())
+    with pytest.raises(TypeError, match="PointConfig"):
+        CascadeConfig(points=RGBDConfig())
+    assert not CascadeConfig(box=ColourConfig()).layer1_background
+    assert CascadeConfig(box=RGBDConfig()).layer1_background
 
 
 def test_cli_points_writes_joints_and_errors(tmp_path, capsys):

@@ -9,9 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cpf_jax import params as pp
 from cpf_jax.colour import (
     COLOUR_BINS,
-    MIXTURE_MAX,
     ColourConfig,
     bin_index,
     build_colour_filter,
@@ -23,8 +23,9 @@ from cpf_jax.colour import (
     mirror_layout,
     mixture_weights,
     n_bins_of,
-    track_boxes,
 )
+from cpf_jax.colour.appearance import MIXTURE_MAX
+from cpf_jax.filter import track_boxes
 from cpf_jax.kernels.boxes import iou
 from cpf_jax.kernels.histogram import grid_ncc, integral_image
 from cpf_jax.types import Frame
@@ -340,12 +341,13 @@ def test_filter_tracks_with_the_optional_terms(contrast, layout, feature):
     frames, gt = _moving(30)
     # (The mirrored layout runs through a filter in tests/test_cli.py.)
     config = ColourConfig(n_particles=128, contrast=contrast, layout=layout, layout_feature=feature)
-    params = default_colour_params()._replace(layout_rate=jnp.float32(0.05))
+    params = pp.replace(default_colour_params(), "layout.rate", jnp.float32(0.05))
     filt = build_colour_filter(config)
-    boxes = np.asarray(
-        jax.jit(lambda k: track_boxes(filt, params, k, frames, gt[0]))(jax.random.PRNGKey(0))
+    boxes, lost = jax.jit(lambda k: track_boxes(filt, params, k, frames, gt[0]))(
+        jax.random.PRNGKey(0)
     )
-    assert np.isfinite(boxes).all()
+    boxes = np.asarray(boxes)
+    assert np.isfinite(boxes).all() and not np.asarray(lost).any()
     ious = np.asarray(iou(jnp.asarray(boxes), jnp.asarray(gt)))
     assert (ious >= 0.5).mean() >= 0.95, ious.round(2)
 
@@ -353,16 +355,16 @@ def test_filter_tracks_with_the_optional_terms(contrast, layout, feature):
 @pytest.mark.parametrize("layout", [None, (7, 3)])
 def test_no_contrast_term_is_the_linear_contrast_at_weight_zero(layout):
     """``contrast=None`` drops the centre-surround term and its summed-area table: the
-    same boxes as the linear contrast with ``contrast_weight = 0``, whatever the weight
+    same boxes as the linear contrast with ``contrast.weight = 0``, whatever the weight
     (then unused); with a layout, the layout reads the table's first channel."""
     frames, gt = _moving(8)
-    zero = default_colour_params()._replace(contrast_weight=jnp.float32(0.0))
+    zero = pp.replace(default_colour_params(), "contrast.weight", jnp.float32(0.0))
 
     def run(contrast, params):
         config = ColourConfig(n_particles=64, contrast=contrast, layout=layout)
         filt = build_colour_filter(config)
         return np.asarray(
-            jax.jit(lambda k: track_boxes(filt, params, k, frames, gt[0]))(jax.random.PRNGKey(3))
+            jax.jit(lambda k: track_boxes(filt, params, k, frames, gt[0])[0])(jax.random.PRNGKey(3))
         )
 
     off = run(None, default_colour_params())

@@ -11,7 +11,7 @@ import sys
 import jax
 
 from cpf_jax import compile_cache
-from cpf_jax.cli import _compile_cache, main
+from cpf_jax.cli import main
 
 
 def test_default_dir_follows_the_environment(monkeypatch, tmp_path):
@@ -41,12 +41,16 @@ def test_prune_removes_the_oldest_files_until_under_the_bound(tmp_path):
 
 
 def test_off_switches_the_cache_off_and_a_bad_directory_is_one_error_line(tmp_path, capsys):
+    # The cache is set up before the source is opened: a missing source still switches it off.
     before = jax.config.jax_enable_compilation_cache
     try:
-        assert _compile_cache("off") is None
+        jax.config.update("jax_enable_compilation_cache", True)
+        missing = str(tmp_path / "missing.npz")
+        assert main([missing, "--compile-cache", "off", "--no-progress"]) == 2
         assert jax.config.jax_enable_compilation_cache is False
     finally:
         jax.config.update("jax_enable_compilation_cache", before)
+    capsys.readouterr()
     blocker = tmp_path / "a-file"
     blocker.write_text("not a directory")
     code = main(["walk_across_medium", "--compile-cache", str(blocker / "xla"), "--no-progress"])

@@ -32,7 +32,7 @@ def test_import_changes_nothing(monkeypatch):
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc check")
 def test_tune_malloc_on_glibc_in_fresh_process():
-    libc = cpu_tuning._glibc()
+    libc = cpu_tuning.load_glibc()
     if libc is None:
         pytest.skip("not glibc")
     # A fresh process: mallopt is process-wide and must not leak into the test session.
@@ -59,22 +59,22 @@ class _FakeLibc:
 
 def test_tune_malloc_settings_and_capped_glibc(monkeypatch):
     fake = _FakeLibc(cap=1 << 40)
-    monkeypatch.setattr(cpu_tuning, "_glibc", lambda: fake)
+    monkeypatch.setattr(cpu_tuning, "load_glibc", lambda: fake)
     assert cpu_tuning.tune_malloc() is True
     assert fake.calls == [(-3, 1 << 30), (-1, 1 << 30), (-4, 0), (-8, 1)]
     # An older glibc capping the threshold at 32 MiB: the cap is used instead.
     fake = _FakeLibc(cap=32 << 20)
-    monkeypatch.setattr(cpu_tuning, "_glibc", lambda: fake)
+    monkeypatch.setattr(cpu_tuning, "load_glibc", lambda: fake)
     assert cpu_tuning.tune_malloc(disable_mmap=False, single_arena=False) is True
     assert fake.calls == [(-3, 1 << 30), (-3, 32 << 20), (-1, 1 << 30)]
     # A refused setting is reported as False, not raised.
     fake = _FakeLibc(cap=0)
-    monkeypatch.setattr(cpu_tuning, "_glibc", lambda: fake)
+    monkeypatch.setattr(cpu_tuning, "load_glibc", lambda: fake)
     assert cpu_tuning.tune_malloc() is False
 
 
 def test_tune_malloc_returns_false_without_glibc(monkeypatch):
-    monkeypatch.setattr(cpu_tuning, "_glibc", lambda: None)
+    monkeypatch.setattr(cpu_tuning, "load_glibc", lambda: None)
     assert cpu_tuning.tune_malloc() is False
 
 
@@ -118,8 +118,8 @@ def test_library_fusions_flag_is_accepted_and_removes_ynn_fusions():
 
 def test_importing_the_library_starts_no_jax_backend():
     # cpu_tuning's switches (XLA_FLAGS, tune_malloc) only apply if JAX has not created
-    # its CPU client yet; importing cpf_jax (any module) must not create it. A module-level
-    # jnp constant did, so bench_colour's XLA flag was silently ignored.
+    # its CPU client yet; importing cpf_jax (any module) must not create it, as a
+    # module-level jnp constant would.
     code = (
         "import importlib, os, pkgutil\n"
         "import cpf_jax, cpf_jax.io, cpf_jax.kernels\n"

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from checks import check_kernel
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -20,6 +21,9 @@ HB, SB = H.DEFAULT_BINS
 NB = HB * SB
 FH, FW = 240, 320  # 76,800 px: the general path cuts big rects into 2 uint16-safe pieces
 WINDOW = (96, 128)  # fast-path window used throughout
+EXACT = {"rtol": 0.0, "atol": 0.0}
+#: |d^2 - d_exact^2| < 2e-6: the stated float32 bound of squared_bhattacharyya's 1 - BC form.
+D2_TOLERANCE = {"rtol": 0.0, "atol": 2e-6}
 
 
 # ----------------------------------------------------------------------------- references
@@ -59,15 +63,42 @@ def _ref_hists(hsv, rects) -> np.ndarray:
     return np.stack([_ref_hist(hsv, r) for r in flat]).reshape(rects.shape[:-1] + (NB,))
 
 
+def _np_counts(bins: np.ndarray, rects, n_bins: int) -> np.ndarray:
+    """Plain NumPy counts ``[..., n_bins]`` of the bins in ``[0, n_bins)`` under each clipped
+    rect (for synthetic bin images, where OpenCV has no image to look at)."""
+    bins = np.asarray(bins)
+    fh, fw = bins.shape
+    rects = np.asarray(rects)
+    out = []
+    for x0, y0, x1, y1 in rects.reshape(-1, 4).tolist():
+        x0, x1 = min(max(x0, 0), fw), min(max(x1, 0), fw)
+        y0, y1 = min(max(y0, 0), fh), min(max(y1, 0), fh)
+        crop = bins[y0 : max(y1, y0), x0 : max(x1, x0)].ravel()
+        crop = crop[(crop >= 0) & (crop < n_bins)]
+        out.append(np.bincount(crop, minlength=n_bins))
+    return np.stack(out).reshape(rects.shape[:-1] + (n_bins,)).astype(np.float64)
+
+
 def _cv_distance(h: np.ndarray, q: np.ndarray) -> float:
     return cv2.compareHist(h.astype(np.float32), q.astype(np.float32), cv2.HISTCMP_BHATTACHARYYA)
 
 
+def _cv_squared_distances(hsv, rects, q) -> np.ndarray:
+    """The per-particle baseline: crop, calcHist, compareHist, squared."""
+    rects = np.asarray(rects)
+    d = [_cv_distance(_ref_hist(hsv, r), q) ** 2 for r in rects.reshape(-1, 4)]
+    return np.asarray(d).reshape(rects.shape[:-1])
+
+
 def _assert_distances_close(d, ref):
     d, ref = np.asarray(d, np.float64), np.asarray(ref, np.float64)
-    # 1 - BC in float32 cancels near d = 0: d^2 agrees to 1e-6, hence d to ~1e-3 there.
+    # 1 - BC in float32 cancels near d = 0: d^2 agrees to 2e-6, hence d to ~1e-3 there.
     np.testing.assert_allclose(d**2, ref**2, atol=2e-6)
     np.testing.assert_allclose(d, ref, atol=2e-3)
+
+
+def _assert_squared_close(d2, ref_d2):
+    np.testing.assert_allclose(np.asarray(d2, np.float64), np.asarray(ref_d2), **D2_TOLERANCE)
 
 
 # Edge cases: (x0, y0, x1, y1) in a 320 x 240 frame.
@@ -102,18 +133,39 @@ def _bins(img):
     return color.hs_bin_index(img, HB, SB)
 
 
-# ----------------------------------------------------------------------------- jitted kernels
+# ----------------------------------------------------------------------------- kernels
+
+
+def _identity(counts):
+    return counts
+
+
+def _histograms(**options):
+    """``rect_reduce``'s exact counts (no reduction) with these static options, jitted."""
+    return jax.jit(functools.partial(H.rect_reduce, reduce_fn=_identity, n_bins=NB, **options))
+
+
+def _squared_distances(bins, rects, ref, **options):
+    """Squared Bhattacharyya distances of ``rects`` to the counts ``ref`` (normalised here),
+    the way the filters compute them: ``rect_reduce`` with each rect's pixel count as the
+    total of ``squared_bhattacharyya``."""
+    sqrt_q = jnp.sqrt(H.normalise_counts(jnp.asarray(ref, jnp.float32)))
+    return H.rect_reduce(
+        bins,
+        rects,
+        lambda counts, area: H.squared_bhattacharyya(counts, sqrt_q, area),
+        n_bins=NB,
+        with_area=True,
+        **options,
+    )
+
 
 _general = jax.jit(functools.partial(H.box_histograms, n_bins=NB))
-_fast = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW))
-_fast_nofb = jax.jit(
-    functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW, fallback=False)
-)
-_fast_i32 = jax.jit(
-    functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW, count_dtype=jnp.int32)
-)
-_box_dist = jax.jit(functools.partial(H.box_distances, n_bins=NB, window=WINDOW))
-_box_dist_general = jax.jit(functools.partial(H.box_distances, n_bins=NB))
+_fast = _histograms(window=WINDOW)
+_fast_nofb = _histograms(window=WINDOW, fallback=False)
+_fast_i32 = _histograms(window=WINDOW, count_dtype=jnp.int32)
+_sq_dist = jax.jit(functools.partial(_squared_distances, window=WINDOW))
+_sq_dist_general = jax.jit(_squared_distances)
 _bhatt = jax.jit(H.bhattacharyya)
 
 
@@ -121,6 +173,14 @@ def _origin_and_covers(rects, window=WINDOW, dtype=jnp.uint16):
     r = B.clip_rect(jnp.asarray(rects), FW, FH)
     o = H.window_origin(r, window, (FH, FW))
     return np.asarray(o), bool(H.window_covers(r, o, window, dtype))
+
+
+def _cloud_rects(seed, n=64, centre=(150, 120), size=(40, 56), spread=4.0):
+    rng = np.random.default_rng(seed)
+    c = np.asarray(centre) + rng.normal(0, spread, (n, 2))
+    wh = np.asarray(size) * (1 + 0.1 * rng.uniform(-1, 1, (n, 2)))
+    xywh = np.concatenate([c - wh / 2, wh], axis=1).astype(np.float32)
+    return xywh, np.array(B.xywh_to_rect(xywh))
 
 
 # ----------------------------------------------------------------------------- histograms
@@ -138,8 +198,7 @@ def test_general_path_matches_calchist_on_edge_cases(frames):
     many = np.concatenate([EDGE_RECTS, EDGE_RECTS + 3])
     assert len(many) > H.SCATTER_MAX_RECTS
     np.testing.assert_array_equal(np.asarray(_general(bins[0], many)), _ref_hists(hsvs[0], many))
-    general = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=None))
-    np.testing.assert_array_equal(np.asarray(general(bins[0], EDGE_RECTS)), ref)
+    np.testing.assert_array_equal(np.asarray(_histograms()(bins[0], EDGE_RECTS)), ref)
 
 
 def test_general_path_with_many_rects_counts_in_uint32_exactly(monkeypatch):
@@ -174,17 +233,19 @@ def test_general_path_with_many_rects_counts_in_uint32_exactly(monkeypatch):
 
 
 @pytest.mark.parametrize("shape", [(240, 320), (424, 512), (37, 53), (1080, 1920), (70000, 3)])
-def test_pieces_tile_any_rect_under_the_uint16_limit(shape):
-    ky, kx = H._split_grid(shape)
-    assert -(-shape[0] // ky) * -(-shape[1] // kx) < 65536
-    rects = np.array([[0, 0, shape[1], shape[0]], [1, 3, shape[1], shape[0] - 2], [2, 5, 2, 9]])
-    pieces = np.stack(H._pieces(jnp.asarray(rects, jnp.int32), ky, kx), axis=-1)
-    assert pieces.shape == (3, ky * kx, 4)
-    area = (pieces[..., 2] - pieces[..., 0]) * (pieces[..., 3] - pieces[..., 1])
-    assert (area < 65536).all() and (area >= 0).all()
-    np.testing.assert_array_equal(
-        area.sum(-1), (rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1])
-    )
+def test_whole_frame_path_counts_rects_of_any_size_exactly(shape):
+    # The uint16 whole-frame table cuts each rect into pieces of fewer than 65,536 px
+    # (a full-HD frame, a 70,000-row column strip): a piece at the limit or above would
+    # wrap its count. Two bins, the first covering most of the frame, so that the whole
+    # frame's count of it is far above 65,535.
+    h, w = shape
+    rng = np.random.default_rng(h + w)
+    bins = (rng.random(shape) < 0.1).astype(np.int32)
+    rects = np.array([[0, 0, w, h], [1, 3, w, h - 2], [2, 5, 2, 9], [-4, -7, w + 9, h + 1]])
+    got = jax.jit(functools.partial(H.rect_reduce, reduce_fn=_identity, n_bins=2))(bins, rects)
+    want = _np_counts(bins, rects, 2)
+    np.testing.assert_array_equal(np.asarray(got), want)
+    assert h * w < 65536 or want[0, 0] >= 65536
 
 
 def test_rect_reduce_with_custom_reduction(frames):
@@ -261,6 +322,7 @@ def test_rect_columns_count_like_the_stacked_rects(frames, window):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     np.testing.assert_array_equal(np.asarray(a_more), np.asarray(b_more))
     np.testing.assert_array_equal(np.asarray(b)[:, 0], _ref_hists(hsvs[0], rects))
+    np.testing.assert_array_equal(np.asarray(b_more), _ref_hists(hsvs[0], rects[:3]))
     np.testing.assert_array_equal(
         np.asarray(H.uses_window((FH, FW), cells, window)),
         np.asarray(H.uses_window((FH, FW), cols, window)),
@@ -279,14 +341,6 @@ def test_general_path_single_rect(frames):
     _, hsvs, bins = frames
     out = np.asarray(_general(bins[0], EDGE_RECTS[0]))
     np.testing.assert_array_equal(out, _ref_hist(hsvs[0], EDGE_RECTS[0]))
-
-
-def _cloud_rects(seed, n=64, centre=(150, 120), size=(40, 56), spread=4.0):
-    rng = np.random.default_rng(seed)
-    c = np.asarray(centre) + rng.normal(0, spread, (n, 2))
-    wh = np.asarray(size) * (1 + 0.1 * rng.uniform(-1, 1, (n, 2)))
-    xywh = np.concatenate([c - wh / 2, wh], axis=1).astype(np.float32)
-    return xywh, np.array(B.xywh_to_rect(xywh))
 
 
 def test_fast_path_inside_window_matches_calchist(frames):
@@ -398,7 +452,7 @@ def test_vmap_keeps_the_fallback_a_branch_and_stays_exact(frames):
     # A batch of clouds (filter keys, say): one member leaves the window. Every member
     # is still counted exactly (the batch takes the exact fallback), and the vmapped
     # program holds a real conditional, not a select that would run both paths for
-    # every member (4x slower filters under vmap).
+    # every member.
     _, hsvs, bins = frames
     fits = _cloud_rects(1, n=17)[1]
     leaves = np.concatenate([_cloud_rects(4, n=16)[1], [[0, 100, FW, 140]]])
@@ -420,19 +474,17 @@ def test_uint16_limit_falls_back_and_int32_table_stays_fast(frames):
     _, covers32 = _origin_and_covers(big, window, jnp.int32)
     assert not covers16 and covers32
     ref = _ref_hists(hsvs[0], big)
-    f16 = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=window))
-    f32 = jax.jit(
-        functools.partial(H.rect_histograms_fast, n_bins=NB, window=window, count_dtype=jnp.int32)
-    )
+    f16 = _histograms(window=window)
+    f32 = _histograms(window=window, count_dtype=jnp.int32)
     np.testing.assert_array_equal(np.asarray(f16(bins[0], big)), ref)
     np.testing.assert_array_equal(np.asarray(f32(bins[0], big)), ref)
 
 
 def test_signed_16_bit_table_is_refused(frames):
     # int16 would wrap counts >= 32,768 to negative values: not a valid count dtype.
-    with pytest.raises(ValueError):
-        H.rect_histograms_fast(
-            frames[2][0], EDGE_RECTS, n_bins=NB, window=WINDOW, count_dtype=jnp.int16
+    with pytest.raises(ValueError, match="count_dtype"):
+        H.rect_reduce(
+            frames[2][0], EDGE_RECTS, _identity, n_bins=NB, window=WINDOW, count_dtype=jnp.int16
         )
 
 
@@ -465,7 +517,7 @@ def test_cell_rects_and_explicit_origin(frames):
     out = np.asarray(_fast(bins[0], cells, origin=jnp.asarray(origin)))
     ref = _ref_hists(hsvs[0], cells)
     np.testing.assert_array_equal(out, ref)
-    chunked = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW, chunk=7))
+    chunked = _histograms(window=WINDOW, chunk=7)
     np.testing.assert_array_equal(np.asarray(chunked(bins[0], cells)), ref)
     # Cell histograms add up to the box histogram.
     np.testing.assert_array_equal(out.sum(axis=1), _ref_hists(hsvs[0], rects))
@@ -478,9 +530,7 @@ def test_odd_frame_small_window():
     hsv = _hsv(img)
     bins = _bins(img)
     rects = rng.integers(-10, 60, (40, 4)).astype(np.int32)
-    out = jax.jit(functools.partial(H.rect_histograms_fast, n_bins=NB, window=(16, 20)))(
-        bins, rects
-    )
+    out = _histograms(window=(16, 20))(bins, rects)
     np.testing.assert_array_equal(np.asarray(out), _ref_hists(hsv, rects))
 
 
@@ -494,20 +544,57 @@ def test_masked_pixels_are_not_counted(frames):
     np.testing.assert_array_equal(out[0], ref)
 
 
-def test_histograms_under_vmap_over_frames(frames):
-    imgs, hsvs, bins = frames
+@pytest.mark.parametrize("window", [WINDOW, None], ids=["window", "general"])
+def test_histograms_of_frames_equal_calchist(frames, window):
+    # One body three ways: plainly, under jit and vmapped over frames and rect sets (the
+    # third set leaves the window: the batch takes the exact fallback).
+    imgs, _, _ = frames
     _, rects = _cloud_rects(8, n=24)
-    rect_sets = np.stack([rects, rects + 7, np.concatenate([rects[:12], EDGE_RECTS])])
-    batched = jax.vmap(functools.partial(H.rect_histograms_fast, n_bins=NB, window=WINDOW))
-    out = np.asarray(jax.jit(batched)(jnp.stack(bins), rect_sets))
-    for i in range(3):
-        np.testing.assert_array_equal(out[i], _ref_hists(hsvs[i], rect_sets[i]))
-    general = np.asarray(
-        jax.jit(jax.vmap(functools.partial(H.box_histograms, n_bins=NB)))(
-            jnp.stack(bins), rect_sets
-        )
+    rect_sets = [rects, rects + 7, np.concatenate([rects[:12], EDGE_RECTS])]
+
+    def kernel(img, rects):
+        return H.rect_reduce(_bins(img), rects, _identity, n_bins=NB, window=window)
+
+    def reference(img, rects):
+        return _ref_hists(_hsv(np.asarray(img)), rects)
+
+    batch = list(zip(imgs, rect_sets, strict=True))
+    check_kernel(kernel, reference, batch[0], batch=batch, **EXACT)
+    # box_histograms (scatter-add for few rects, the whole-frame table for more) too.
+    check_kernel(
+        lambda img, rects: H.box_histograms(_bins(img), rects, NB),
+        reference,
+        batch[2],
+        batch=[(img, rects[:10]) for img, rects in batch],
+        **EXACT,
     )
-    np.testing.assert_array_equal(general, out)
+
+
+@pytest.mark.parametrize("n_bins,count_dtype", [(9, jnp.uint16), (72, jnp.uint16), (9, jnp.int32)])
+@pytest.mark.parametrize("window", [(20, 24), None], ids=["window", "general"])
+def test_counts_ignore_out_of_range_bins_on_every_table_layout(n_bins, count_dtype, window):
+    # The integral histogram stores its channels padded to whole vectors (9 -> 16, 72 -> 80
+    # uint16 channels; 9 -> 16 int32): bins -1 and n_bins..n_bins + 20 (some of which land
+    # in the padding channels) count nowhere, for frames of every size against NumPy.
+    for shape in [(1, 1), (7, 5), (37, 53)]:
+        rng = np.random.default_rng(sum(shape) + n_bins)
+        bins = rng.integers(-1, n_bins + 21, shape).astype(np.int32)
+        h, w = shape
+        x0, y0 = rng.integers(-3, w, 30), rng.integers(-3, h, 30)
+        rects = np.stack([x0, y0, x0 + rng.integers(0, 30, 30), y0 + rng.integers(0, 30, 30)], -1)
+        rects[:2] = [[0, 0, w, h], [-5, -5, w + 5, h + 5]]
+        count = jax.jit(
+            functools.partial(
+                H.rect_reduce,
+                reduce_fn=_identity,
+                n_bins=n_bins,
+                window=window,
+                count_dtype=count_dtype,
+                chunk=8,
+            )
+        )
+        got = np.asarray(count(bins, rects.astype(np.int32)))
+        np.testing.assert_array_equal(got, _np_counts(bins, rects, n_bins))
 
 
 # ----------------------------------------------------------------------------- window placement
@@ -560,89 +647,46 @@ def test_suggest_window():
     assert H.suggest_window((150, 200), 15, frame, n_std=6) == (320, 256)
 
 
-@pytest.mark.parametrize("n", [3, 8, 16, 21, 40])
-def test_chunked_blocks_with_carried_inputs_equal_one_pass(n):
-    """``_chunked`` gives ``fn`` over all rows at once, cutting args along different axes
-    into blocks of 8 (one block, exact blocks, a partial last block), with the blocks'
-    inputs sliced in place or carried through the loop, under ``jit`` and ``vmap``."""
-    rng = np.random.default_rng(n)
-    a = jnp.asarray(rng.integers(0, 100, (3, n)), jnp.int32)  # rows along axis 1
-    b = jnp.asarray(rng.normal(size=(n, 2)), jnp.float32)  # rows along axis 0
+# ----------------------------------------------------------------------------- tables and sums
 
-    def fn(a, b):
-        # a broadcast product, the pattern that carried inputs are for
-        return (a[:, None, :] * (a[1:] - a[:-1])[None, :, :]).reshape(-1, a.shape[-1]).T, b * 2
 
-    want = fn(a, b)
-    for carry in (False, True):
-        blocks = functools.partial(H._chunked, fn, chunk=8, axis=(1, 0), carry_inputs=carry)
-        got = jax.jit(lambda a, b, blocks=blocks: blocks((a, b)))(a, b)
-        for g, w in zip(got, want, strict=True):
-            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
-        batched = jax.vmap(lambda a, b, blocks=blocks: blocks((a, b)), in_axes=(None, 0))(
-            a, jnp.stack([b, -b])
-        )
-        np.testing.assert_array_equal(np.asarray(batched[0][1]), np.asarray(want[0]))
-        np.testing.assert_array_equal(np.asarray(batched[1][1]), -np.asarray(want[1]))
+def _summed_area(values: np.ndarray) -> np.ndarray:
+    """NumPy summed-area table ``[h + 1, w + 1, c]`` in the dtype of ``values`` (unsigned
+    integers wrap modulo 2^bits, as the kernel's do)."""
+    out = np.zeros((values.shape[0] + 1, values.shape[1] + 1, values.shape[2]), values.dtype)
+    out[1:, 1:] = values.cumsum(0, dtype=values.dtype).cumsum(1, dtype=values.dtype)
+    return out
 
 
 @pytest.mark.parametrize("n", [1, 7, 8, 9, 16, 53, 289])
-def test_blocked_cumsum_matches_numpy(n):
-    # _cumsum cuts the axis into blocks of PREFIX_BLOCK (padded when it does not divide
-    # n): every length, either axis, exact for integers (uint16 wraps modulo 2^16, as
-    # the uint16 tables rely on), under jit and vmap.
+def test_integral_image_equals_numpy_for_every_row_length(n):
+    # The blocked prefix sums along x pad the rows to whole blocks of PREFIX_BLOCK when it
+    # does not divide their length: every length, exact for integers (uint16 wraps modulo
+    # 2^16, as the uint16 tables rely on), the reference loops ("loop") bit for bit, plain,
+    # under jit and vmap; float sums to rounding.
     rng = np.random.default_rng(n)
-    x = rng.integers(0, 60_000, (n, 5, 3)).astype(np.uint16)
-    f = jax.jit(H._cumsum, static_argnums=1)
-    for axis in (0, 1):
-        expected = np.cumsum(x, axis=axis, dtype=np.uint16)
-        np.testing.assert_array_equal(np.asarray(f(x, axis)), expected)
-    ints = rng.integers(-1000, 1000, (3, n, 4)).astype(np.int32)
-    batched = jax.vmap(lambda v: H._cumsum(v, 0))(ints)
-    np.testing.assert_array_equal(np.asarray(batched), np.cumsum(ints, axis=1))
-    floats = rng.random((n, 4)).astype(np.float32)
-    np.testing.assert_allclose(np.asarray(f(floats, 0)), np.cumsum(floats, 0), rtol=1e-5)
-
-
-@pytest.mark.parametrize("shape", [(1, 1), (7, 5), (37, 53), (96, 128)])
-def test_blocked_tables_equal_the_row_column_loops(shape):
-    # The default (blocked x pass, row loop along y) against the reference loops
-    # ("loop"), bit for bit, for histograms and integer images, under jit and vmap.
-    # Bins outside [0, 9) (-1, and 9..16: the stored table's padding channels and
-    # beyond) count nowhere.
-    rng = np.random.default_rng(sum(shape))
-    bins = rng.integers(-1, 17, (2, *shape)).astype(np.int32)
-    blocked = jax.jit(jax.vmap(lambda b: H.integral_histogram(b, 9)))(bins)
-    loop = jax.vmap(lambda b: H.integral_histogram(b, 9, method="loop"))(bins)
-    np.testing.assert_array_equal(np.asarray(blocked), np.asarray(loop))
-    one_hot = (bins[0][..., None] == np.arange(9)).astype(np.int64)
-    ref = np.zeros((shape[0] + 1, shape[1] + 1, 9), np.int64)
-    ref[1:, 1:] = one_hot.cumsum(0).cumsum(1)
-    np.testing.assert_array_equal(np.asarray(blocked[0]).astype(np.int64), ref)
-    values = rng.integers(-4096, 4097, (*shape, 2)).astype(np.int32)
-    np.testing.assert_array_equal(
-        np.asarray(jax.jit(H.integral_image)(values)),
-        np.asarray(H.integral_image(values, method="loop")),
-    )
+    wraps = [rng.integers(0, 60_000, (5, n, 3)).astype(np.uint16) for _ in range(2)]
+    check_kernel(H.integral_image, _summed_area, (wraps[0],), batch=[(v,) for v in wraps], **EXACT)
+    ints = [rng.integers(-1000, 1000, (4, n, 2)).astype(np.int32) for _ in range(2)]
+    check_kernel(H.integral_image, _summed_area, (ints[0],), batch=[(v,) for v in ints], **EXACT)
+    loop = functools.partial(H.integral_image, method="loop")
+    check_kernel(loop, _summed_area, (ints[1],), variants=("jit",), **EXACT)
+    floats = rng.random((6, n, 4)).astype(np.float32)
+    check_kernel(H.integral_image, _summed_area, (floats,), rtol=1e-5, atol=1e-6)
     with pytest.raises(ValueError, match="method"):
-        H.integral_histogram(bins[0], 9, method="scan")
+        H.integral_image(ints[0], method="scan")
 
 
-def test_stored_table_rows_are_padded_with_empty_channels():
-    # The corner gathers read a table whose channel rows are padded to whole
-    # vectors (TABLE_ROW_ALIGN bytes); the padding never counts a pixel.
-    assert H._table_channels(72, jnp.uint16) == 80
-    assert H._table_channels(64, jnp.uint16) == 64
-    assert H._table_channels(72, jnp.int32) == 72
-    assert H._table_channels(9, jnp.int32) == 16
-    bins = np.random.default_rng(5).integers(-1, 20, (23, 31)).astype(np.int32)
-    for method in H.TABLE_METHODS:
-        table = np.asarray(
-            jax.jit(H._histogram_table, static_argnums=(1, 2, 3))(bins, 9, jnp.uint16, method)
-        )
-        assert table.shape == (24, 32, 16)
-        assert not table[..., 9:].any()
-        np.testing.assert_array_equal(table[..., :9], np.asarray(H.integral_histogram(bins, 9)))
+def _np_rect_sums(values: np.ndarray, rects, channels: int | None = None) -> np.ndarray:
+    """Plain NumPy sums ``[..., c]`` of ``values [h, w, c]`` under each clipped rect."""
+    h, w = values.shape[:2]
+    rects = np.asarray(rects)
+    out = []
+    for x0, y0, x1, y1 in rects.reshape(-1, 4).tolist():
+        a, b = max(x0, 0), max(y0, 0)
+        c, d = min(max(x1, a), w), min(max(y1, b), h)
+        out.append(values[b:d, a:c, :channels].reshape(-1, values[..., :channels].shape[-1]).sum(0))
+    return np.stack(out).reshape(rects.shape[:-1] + (out[0].shape[-1],))
 
 
 def test_integral_image_and_rect_sums_match_numpy():
@@ -661,46 +705,80 @@ def test_integral_image_and_rect_sums_match_numpy():
         np.int32,
     )
 
-    def ref(r):
-        x0, y0 = max(r[0], 0), max(r[1], 0)
-        x1, y1 = min(max(r[2], x0), 53), min(max(r[3], y0), 37)
-        return values[y0:y1, x0:x1].reshape(-1, 2).sum(0)
+    def kernel(v, r):
+        return H.rect_sums(H.integral_image(v), r)
 
-    expected = np.stack([ref(r) for r in rects])
-    f = jax.jit(lambda v, r: H.rect_sums(H.integral_image(v), r))
-    np.testing.assert_array_equal(np.asarray(f(values, rects)), expected)
-    # vmap over frames and rect sets
-    both = jax.vmap(f)(np.stack([values, -values]), np.stack([rects, rects[::-1]]))
-    np.testing.assert_array_equal(np.asarray(both[0]), expected)
-    np.testing.assert_array_equal(np.asarray(both[1]), -expected[::-1])
+    batch = [(values, rects), (-values, rects[::-1].copy())]
+    check_kernel(kernel, _np_rect_sums, batch[0], batch=batch, **EXACT)
     # float tables too
     table = H.integral_image(values.astype(np.float32))
-    np.testing.assert_allclose(np.asarray(H.rect_sums(table, rects)), expected, rtol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(H.rect_sums(table, rects)), _np_rect_sums(values, rects), rtol=1e-6
+    )
 
 
-def test_rect_sums_in_chunks_equal_the_numpy_sums():
-    """``chunk``: the same sums, with a remainder block, for a [N, 2] rect axis too, under
-    jit and vmap (the colour step's contrast sums take this path)."""
-    rng = np.random.default_rng(4)
+@pytest.mark.parametrize("n", [3, 8, 16, 21, 40])
+def test_rect_sums_in_chunks_equal_the_numpy_sums(n):
+    # ``chunk``: gathers in sequential blocks of 8 rects (one block, exact blocks, a
+    # partial last block) whose inputs are handed on through the loop; the same sums
+    # for a [N, 2] rect axis too; plainly, under jit and vmap.
+    rng = np.random.default_rng(n)
     values = rng.integers(-4096, 4097, (37, 53, 3)).astype(np.int32)
-    x0 = rng.integers(-15, 60, 23)
-    y0 = rng.integers(-10, 45, 23)
-    rects = np.stack([x0, y0, x0 + rng.integers(-3, 40, 23), y0 + rng.integers(-3, 30, 23)], -1)
+    x0, y0 = rng.integers(-15, 60, n), rng.integers(-10, 45, n)
+    rects = np.stack([x0, y0, x0 + rng.integers(-3, 40, n), y0 + rng.integers(-3, 30, n)], -1)
+    rects = rects.astype(np.int32)
 
-    def ref(r):
-        a, b = max(r[0], 0), max(r[1], 0)
-        c, d = min(max(r[2], a), 53), min(max(r[3], b), 37)
-        return values[b:d, a:c, :2].reshape(-1, 2).sum(0)
+    def sums(v, r):
+        return H.rect_sums(H.integral_image(v), r, 2, 8)
 
-    expected = np.stack([ref(r) for r in rects])
-    f = jax.jit(lambda v, r: H.rect_sums(H.integral_image(v), r, 2, 5))
-    np.testing.assert_array_equal(np.asarray(f(values, rects)), expected)
+    batch = [(values, rects), (-values, rects[::-1].copy())]
+    check_kernel(sums, lambda v, r: _np_rect_sums(v, r, 2), batch[0], batch=batch, **EXACT)
     cols = tuple(jnp.asarray(rects[:, k].reshape(-1, 1).repeat(2, 1)) for k in range(4))
-    paired = jax.jit(lambda v, c: H.rect_sums(H.integral_image(v), c, 2, 4))(values, cols)
-    np.testing.assert_array_equal(np.asarray(paired), expected[:, None].repeat(2, 1))
-    both = jax.vmap(f)(np.stack([values, -values]), np.stack([rects, rects[::-1]]))
-    np.testing.assert_array_equal(np.asarray(both[0]), expected)
-    np.testing.assert_array_equal(np.asarray(both[1]), -expected[::-1])
+    paired = jax.jit(sums)(values, cols)
+    np.testing.assert_array_equal(
+        np.asarray(paired), _np_rect_sums(values, rects, 2)[:, None].repeat(2, 1)
+    )
+
+
+@pytest.mark.parametrize("n", [3, 16, 21])
+def test_chunked_counts_and_ncc_equal_the_references(n, frames):
+    # Blocks of 8 rects or boxes (one block, exact blocks, a partial last block):
+    # rect_reduce slices each block's inputs in place, grid_ncc hands them on through the
+    # loop (cut along the minor box axis); plainly, under jit and vmap (the second rect
+    # set leaves the window: the batch takes the exact fallback).
+    imgs, _, _ = frames
+    _, cloud = _cloud_rects(n, n=n)
+    cloud_sets = [cloud, np.concatenate([cloud[: n // 2], EDGE_RECTS, cloud])[:n]]
+    check_kernel(
+        lambda img, r: H.rect_reduce(_bins(img), r, _identity, n_bins=NB, window=WINDOW, chunk=8),
+        lambda img, r: _ref_hists(_hsv(np.asarray(img)), r),
+        (imgs[0], cloud_sets[0]),
+        batch=list(zip(imgs[:2], cloud_sets, strict=True)),
+        **EXACT,
+    )
+
+    rng = np.random.default_rng(n)
+    values = rng.integers(-4096, 4097, (37, 53, 3)).astype(np.int32)
+    boxes = np.concatenate([rng.uniform(-10, 45, (n, 2)), rng.uniform(0, 30, (n, 2))], axis=1)
+    boxes = boxes.astype(np.float32)
+    template = rng.normal(size=3 * 2 * 3)
+    template = (template - template.mean()) / np.linalg.norm(template - template.mean())
+    template = template.astype(np.float32)
+
+    def ncc(v, b):
+        return H.grid_ncc(H.integral_image(v), b, template, 3, 2, chunk=8)
+
+    def ncc_reference(v, b):
+        out = []
+        for box in np.asarray(b):
+            s, c = _grid_reference(np.asarray(v), box, 3, 2)
+            means = (s / np.maximum(c, 1)[..., None]).ravel()
+            centred = means - means.mean()
+            out.append(centred @ template / max(np.linalg.norm(centred), 1e-3))
+        return np.asarray(out)
+
+    batch = [(values, boxes), (-values, boxes)]
+    check_kernel(ncc, ncc_reference, batch[0], batch=batch, rtol=1e-4, atol=1e-4)
 
 
 def _grid_reference(values, box, rows, cols):
@@ -733,20 +811,21 @@ def test_grid_sums_match_loop(rows, cols):
         ],
         np.float32,
     )
-    expected = [_grid_reference(values, b, rows, cols) for b in boxes]
-    exp_sums = np.stack([e[0] for e in expected])
-    exp_counts = np.stack([e[1] for e in expected])
-    f = jax.jit(lambda v, b: H.grid_sums(H.integral_image(v), b, rows, cols))
-    sums, counts = f(values, boxes)
-    np.testing.assert_array_equal(np.asarray(sums), exp_sums)
-    np.testing.assert_array_equal(np.asarray(counts), exp_counts)
+
+    def kernel(v, b):
+        return H.grid_sums(H.integral_image(v), b, rows, cols)
+
+    def reference(v, b):
+        expected = [_grid_reference(np.asarray(v), box, rows, cols) for box in np.asarray(b)]
+        return np.stack([e[0] for e in expected]), np.stack([e[1] for e in expected])
+
+    batch = [(values, boxes), (2 * values, boxes[::-1].copy())]
+    check_kernel(kernel, reference, batch[0], batch=batch, **EXACT)
     # the cells partition the clipped rect: their sums add up to rect_sums
     table = H.integral_image(values)
+    sums, _ = kernel(values, boxes)
     whole = H.rect_sums(table, B.xywh_to_rect(boxes))
     np.testing.assert_array_equal(np.asarray(sums.sum((1, 2))), np.asarray(whole))
-    # vmap over frames
-    vs, _ = jax.vmap(f, in_axes=(0, None))(np.stack([values, 2 * values]), boxes)
-    np.testing.assert_array_equal(np.asarray(vs[1]), 2 * exp_sums)
 
 
 # ----------------------------------------------------------------------------- distances
@@ -781,60 +860,106 @@ def test_bhattacharyya_gradients_are_finite():
         assert np.isfinite(np.asarray(g)).all()
 
 
-def _opencv_loop(hsv, xywh, q):
-    """The per-particle baseline: crop, calcHist, compareHist."""
-    rects = np.asarray(B.xywh_to_rect(jnp.asarray(xywh)))
-    return np.array([_cv_distance(_ref_hist(hsv, r), q) for r in rects])
+def _np_normalised(h) -> np.ndarray:
+    """Each row divided by its sum when that is at least 1 (counts), else left as it is."""
+    return np.stack([r / r.sum() if r.sum() >= 1 else r for r in np.asarray(h, np.float64)])
 
 
-def test_box_distances_match_opencv_loop(frames):
+def test_normalise_counts_sums_to_one_and_leaves_empty_histograms_empty():
+    counts = np.array([[3.0, 1.0, 0.0, 4.0], [0.0] * 4, [0.1, 0.2, 0.3, 0.4]], np.float32)
+    np.testing.assert_allclose(
+        _np_normalised(counts), [[3 / 8, 1 / 8, 0.0, 4 / 8], [0.0] * 4, [0.1, 0.2, 0.3, 0.4]]
+    )
+    check_kernel(H.normalise_counts, _np_normalised, (counts,), batch=[(counts,), (5 * counts,)])
+
+
+def test_squared_bhattacharyya_matches_compare_hist():
+    # d^2 from counts and their pixel count against cv2.compareHist squared: dense,
+    # sparse, identical (d = 0), disjoint (d = 1) and empty histograms.
+    rng = np.random.default_rng(9)
+    q = rng.random(NB).astype(np.float32)
+    q[:3] = 0
+    counts = np.floor(rng.random((20, NB)) * 100).astype(np.float32)
+    counts[:5, : NB // 2] = 0
+    counts[5] = q * 1000  # proportional to q: d = 0
+    counts[6] = 0
+    counts[6, 0] = 7  # q[0] == 0: d = 1
+    counts[7] = 0  # empty: d = 1
+    sqrt_q = np.sqrt(q / q.sum()).astype(np.float32)
+
+    def kernel(c, s):
+        return H.squared_bhattacharyya(c, s, jnp.sum(c, axis=-1))
+
+    def reference(c, s):
+        q_ = np.asarray(s, np.float64) ** 2
+        return np.array([_cv_distance(h, q_) ** 2 if h.sum() else 1.0 for h in np.asarray(c)])
+
+    check_kernel(
+        kernel,
+        reference,
+        (counts, sqrt_q),
+        batch=[(counts, sqrt_q), (counts[::-1].copy(), sqrt_q)],
+        **D2_TOLERANCE,
+    )
+    d2 = np.asarray(kernel(counts, sqrt_q))
+    assert d2[5] == pytest.approx(0.0, abs=2e-6) and d2[6] == 1.0 and d2[7] == 1.0
+
+
+def test_squared_distances_match_opencv_loop(frames):
     _, hsvs, bins = frames
     xywh, rects = _cloud_rects(10, n=200)
     q = _ref_hist(hsvs[0], rects[0])
     xywh[1] = xywh[0]  # identical histogram: d = 0
+    rects = np.asarray(B.xywh_to_rect(xywh))
     assert _origin_and_covers(rects)[1]
-    ref = _opencv_loop(hsvs[0], xywh, q)
-    _assert_distances_close(_box_dist(bins[0], xywh, q), ref)
-    _assert_distances_close(_box_dist_general(bins[0], xywh, q), ref)
+    ref = _cv_squared_distances(hsvs[0], rects, q)
+    _assert_squared_close(_sq_dist(bins[0], rects, q), ref)
+    _assert_squared_close(_sq_dist_general(bins[0], rects, q), ref)
 
 
-def test_box_distances_edge_boxes_and_fallback(frames):
+def test_squared_distances_of_edge_boxes_and_fallback(frames):
     _, hsvs, bins = frames
     xywh, _ = _cloud_rects(11, n=40)
     edge = np.array(
         [[-500, -500, 30, 30], [10, 10, 0, 0], [-20.4, -10.6, 60.2, 40.9], [300, 200, 80, 80]],
         np.float32,
     )
-    xywh = np.concatenate([xywh, edge])
+    rects = np.asarray(B.xywh_to_rect(np.concatenate([xywh, edge])))
+    assert not _origin_and_covers(rects)[1]
     q = _ref_hist(hsvs[0], [120, 80, 180, 160])
-    d = np.asarray(_box_dist(bins[0], xywh, q))
-    _assert_distances_close(d, _opencv_loop(hsvs[0], xywh, q))
-    assert d[-4] == 1.0 and d[-3] == 1.0  # empty boxes: the worst distance
+    d2 = np.asarray(_sq_dist(bins[0], rects, q))
+    _assert_squared_close(d2, _cv_squared_distances(hsvs[0], rects, q))
+    assert d2[-4] == 1.0 and d2[-3] == 1.0  # empty boxes: the worst distance
 
 
-def test_distances_empty_reference_is_one(frames):
+def test_squared_distances_to_an_empty_reference_are_one(frames):
     _, _, bins = frames
-    xywh, _ = _cloud_rects(12, n=8)
-    d = np.asarray(_box_dist(bins[0], xywh, np.zeros(NB, np.float32)))
-    np.testing.assert_array_equal(d, 1.0)
+    _, rects = _cloud_rects(12, n=8)
+    d2 = np.asarray(_sq_dist(bins[0], rects, np.zeros(NB, np.float32)))
+    np.testing.assert_array_equal(d2, 1.0)
 
 
-def test_box_distances_under_vmap_over_frames_and_box_sets(frames):
-    _, hsvs, bins = frames
+def test_squared_distances_under_vmap_over_frames_and_box_sets(frames):
+    imgs, hsvs, _ = frames
     xywh, rects = _cloud_rects(13, n=50)
     q = _ref_hist(hsvs[0], rects[0])
-    box_sets = np.stack(
-        [xywh, xywh + np.float32([5, -3, 0, 0]), xywh * np.float32([1, 1, 1.1, 0.9])]
-    )
-    out = np.asarray(
-        jax.jit(jax.vmap(_box_dist, in_axes=(0, 0, None)))(jnp.stack(bins), box_sets, q)
-    )
-    for i in range(3):
-        _assert_distances_close(out[i], _opencv_loop(hsvs[i], box_sets[i], q))
+    box_sets = [xywh, xywh + np.float32([5, -3, 0, 0]), xywh * np.float32([1, 1, 1.1, 0.9])]
+    rect_sets = [np.asarray(B.xywh_to_rect(b)) for b in box_sets]
+
+    def kernel(img, rects):
+        return _squared_distances(_bins(img), rects, q, window=WINDOW)
+
+    def reference(img, rects):
+        return _cv_squared_distances(_hsv(np.asarray(img)), rects, q)
+
+    batch = list(zip(imgs, rect_sets, strict=True))
+    check_kernel(kernel, reference, batch[0], batch=batch, **D2_TOLERANCE)
     # vmap over box sets only (one frame).
-    out1 = np.asarray(jax.jit(jax.vmap(_box_dist, in_axes=(None, 0, None)))(bins[1], box_sets, q))
+    out = np.asarray(
+        jax.jit(jax.vmap(_sq_dist, in_axes=(None, 0, None)))(_bins(imgs[1]), np.stack(rect_sets), q)
+    )
     for i in range(3):
-        _assert_distances_close(out1[i], _opencv_loop(hsvs[1], box_sets[i], q))
+        _assert_squared_close(out[i], _cv_squared_distances(hsvs[1], rect_sets[i], q))
 
 
 def test_cell_distances_with_per_cell_references(frames):
@@ -849,46 +974,28 @@ def test_cell_distances_with_per_cell_references(frames):
         axis=1,
     )
     refs = _ref_hists(hsvs[0], cells[0])  # [2, NB]: one reference per cell
-    f = jax.jit(functools.partial(H.rect_distances, n_bins=NB, window=WINDOW))
-    d = np.asarray(f(bins[0], cells, refs))
-    assert d.shape == (30, 2)
+    d2 = np.asarray(_sq_dist(bins[0], cells, refs))
+    assert d2.shape == (30, 2)
     ref = np.array(
-        [[_cv_distance(_ref_hist(hsvs[0], c), refs[j]) for j, c in enumerate(row)] for row in cells]
+        [
+            [_cv_distance(_ref_hist(hsvs[0], c), refs[j]) ** 2 for j, c in enumerate(row)]
+            for row in cells
+        ]
     )
-    _assert_distances_close(d, ref)
+    _assert_squared_close(d2, ref)
 
 
 def test_no_retrace_between_frames(frames):
     _, hsvs, bins = frames
-    f = jax.jit(functools.partial(H.box_distances, n_bins=NB, window=WINDOW))
+    traces = []
+
+    def distances(bins, rects, q):
+        traces.append(None)  # runs once per trace, not per call
+        return _squared_distances(bins, rects, q, window=WINDOW)
+
+    f = jax.jit(distances)
     q = _ref_hist(hsvs[0], [10, 10, 60, 60])
     for seed in range(3):
-        xywh, _ = _cloud_rects(20 + seed)
-        f(bins[seed], xywh, q).block_until_ready()
-    assert f._cache_size() == 1
-
-
-# ----------------------------------------------------------------------------- shared-size map
-
-
-def test_shared_size_distance_map_matches_general_path(frames):
-    _, hsvs, bins = frames
-    q = _ref_hist(hsvs[0], [120, 80, 170, 150])
-    size = jnp.asarray([70, 50])  # (rh, rw)
-    f = jax.jit(
-        functools.partial(
-            H.shared_size_distance_map, n_bins=NB, map_shape=(24, 32), max_rect=(80, 64)
-        )
-    )
-    for origin in ([70, 110], [-40, FW - 20]):  # inside; partly outside (top-right)
-        origin = jnp.asarray(origin)
-        dmap = np.asarray(f(bins[0], size, origin, q))
-        ii, jj = np.meshgrid(np.arange(24), np.arange(32), indexing="ij")
-        y0, x0 = int(origin[0]) + ii.ravel(), int(origin[1]) + jj.ravel()
-        rects = np.stack([x0, y0, x0 + 50, y0 + 70], -1).astype(np.int32)
-        ref = np.array([_cv_distance(_ref_hist(hsvs[0], r), q) for r in rects]).reshape(24, 32)
-        _assert_distances_close(dmap, ref)
-        # Particles look their distance up by top-left corner; outside the map: 1.
-        tl = np.array([[x0[5], y0[5]], [int(origin[1]) - 1, int(origin[0])]], np.int32)
-        got = np.asarray(H.distances_from_map(jnp.asarray(dmap), origin, tl))
-        np.testing.assert_allclose(got, [dmap.ravel()[5], 1.0])
+        _, rects = _cloud_rects(20 + seed)
+        f(bins[seed], rects, q).block_until_ready()
+    assert len(traces) == 1

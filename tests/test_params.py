@@ -46,7 +46,7 @@ def test_paths_get_and_replace_address_nested_fields():
     moved = pp.replace(values, "inner.share", jnp.float32(0.5))
     assert float(moved.inner.share) == 0.5 and float(values.inner.share) == 0.25
     assert moved.offset is values.offset
-    with pytest.raises(KeyError, match="inner has fields scale, share"):
+    with pytest.raises(ValueError, match="inner has fields scale, share"):
         pp.get(values, "inner.sigma")
 
 
@@ -62,3 +62,7 @@ def test_constrain_inverts_unconstrain_and_refuses_untrainable_paths():
         np.testing.assert_allclose(pp.get(back, name), pp.get(values, name), rtol=1e-6)
     with pytest.raises(ValueError, match="'count' is not trainable"):
         pp.unconstrain(values, props, ["count"])
+    # A group names the field that is not trainable.
+    untrainable = props._replace(inner=props.inner._replace(share=pp.Prop("sigmoid", False)))
+    with pytest.raises(ValueError, match="'inner.share' is not trainable"):
+        pp.unconstrain(values, untrainable, ["inner"])

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from conftest import FIGURE_SEGMENTS, figure_joints
 
+from cpf_jax.filter import Context, track
 from cpf_jax.kernels import depth as dk
 from cpf_jax.points import (
-    PointFilterConfig,
-    PointInputs,
+    PointConfig,
+    PointFrame,
     body_model,
     build_point_filter,
     default_point_params,
-    track_points,
 )
 from cpf_jax.types import Intrinsics
 
@@ -68,13 +68,13 @@ T = 14
 @pytest.fixture(scope="module")
 def sequence():
     frames = [render(t) for t in range(T)]
-    inputs = PointInputs(
+    inputs = PointFrame(
         jnp.asarray(np.stack([f[0] for f in frames])), jnp.asarray(np.stack([f[1] for f in frames]))
     )
     return frames, inputs
 
 
-BASE = PointFilterConfig(
+BASE = PointConfig(
     n_particles=48,
     window=(112, 64),
     intrinsics=INTR,
@@ -95,11 +95,20 @@ def _start(frames):
 
 def test_config_validation():
     with pytest.raises(ValueError):
-        PointFilterConfig(weighting="colour")
+        PointConfig(weighting="colour")
     with pytest.raises(ValueError):
-        PointFilterConfig(references=("knee",))
+        PointConfig(references=("knee",))
     with pytest.raises(ValueError):
-        PointFilterConfig(n_particles=0)
+        PointConfig(n_particles=0)
+
+
+def test_init_needs_the_points_in_its_context(sequence):
+    frames, inputs = sequence
+    filt = build_point_filter(BASE)
+    first = jax.tree_util.tree_map(lambda x: x[0], inputs)
+    for context in (None, Context(), Context(background=None)):
+        with pytest.raises(ValueError, match="points"):
+            filt.init(default_point_params(), jax.random.PRNGKey(0), first, first.box, context)
 
 
 def test_body_model_segments_the_figure(sequence):
@@ -125,7 +134,7 @@ def test_tracks_a_swinging_hand(sequence, weighting):
     cfg = dataclasses.replace(BASE, weighting=weighting)
     filt = build_point_filter(cfg)
     params = default_point_params()
-    run = jax.jit(lambda k, inp, p0: track_points(filt, params, k, inp, p0))
+    run = jax.jit(lambda k, inp, p0: track(filt, params, k, inp, inp.box[0], Context(points=p0)))
     _, info = run(jax.random.PRNGKey(0), inputs, _start(frames))
     gt = np.stack([np.stack([f[3]["lh"], f[3]["head"]]) for f in frames[1:]])
     err = np.linalg.norm(np.asarray(info.mean) - gt, axis=-1)
@@ -151,11 +160,9 @@ def test_step_weights_only_body_particles_and_compiles_once(sequence):
         return filt.step(*a)
 
     step = jax.jit(counted)
+    first = jax.tree_util.tree_map(lambda x: x[0], inputs)
     state = jax.jit(filt.init)(
-        params,
-        jax.random.PRNGKey(1),
-        jax.tree_util.tree_map(lambda x: x[0], inputs),
-        _start(frames),
+        params, jax.random.PRNGKey(1), first, first.box, Context(points=_start(frames))
     )
     bmf = jax.jit(lambda d, b: body_model(cfg, d, b))
     for t in range(1, 5):
@@ -178,14 +185,16 @@ def test_recovery_when_every_particle_is_off_the_body(sequence):
     filt = build_point_filter(cfg)
     params = default_point_params()
     first = jax.tree_util.tree_map(lambda x: x[0], inputs)
-    state = jax.jit(filt.init)(params, jax.random.PRNGKey(0), first, _start(frames))
+    state = jax.jit(filt.init)(
+        params, jax.random.PRNGKey(0), first, first.box, Context(points=_start(frames))
+    )
     # the figure jumps 40 px to the right: the hand's cloud lands on the wall
     z, box, person, uv, _ = render(0)
     shifted = np.full_like(z, 3000)
     shifted[:, 40:] = z[:, :-40]
     box = box + np.array([40, 0, 0, 0], np.float32)
     state, info = jax.jit(filt.step)(
-        params, jax.random.PRNGKey(3), state, PointInputs(jnp.asarray(shifted), jnp.asarray(box))
+        params, jax.random.PRNGKey(3), state, PointFrame(jnp.asarray(shifted), jnp.asarray(box))
     )
     rec = np.asarray(info.recovered)
     assert rec[0]
@@ -202,7 +211,8 @@ def test_vmap_over_keys(sequence):
     filt = build_point_filter(dataclasses.replace(BASE, weighting="geodesic"))
     params = default_point_params()
     short = jax.tree_util.tree_map(lambda x: x[:4], inputs)
-    run = jax.jit(jax.vmap(lambda k: track_points(filt, params, k, short, _start(frames))[1].mean))
+    context = Context(points=_start(frames))
+    run = jax.jit(jax.vmap(lambda k: track(filt, params, k, short, short.box[0], context)[1].mean))
     means = np.asarray(run(jax.random.split(jax.random.PRNGKey(0), 3)))
     assert means.shape == (3, 3, 2, 2)
     assert not np.allclose(means[0], means[1])  # different keys, different clouds

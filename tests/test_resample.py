@@ -154,9 +154,13 @@ def test_systematic_equals_a_search_of_its_positions(num):
     m = n if num is None else num
 
     def searched(key, lw):
+        # The textbook form: the first particle whose cumulative weight exceeds each
+        # position, clipped because float32 cumulative sums can end slightly below 1.
         u = jax.random.uniform(key, (), jnp.float32)
         positions = (u + jnp.arange(m, dtype=jnp.float32)) / m
-        return rs._search(rs._weights(lw), positions)
+        cdf = jnp.cumsum(jnp.exp(rs.normalise_log_weights(lw)))
+        idx = jnp.searchsorted(cdf, positions, side="right")
+        return jnp.clip(idx, 0, n - 1).astype(jnp.int32)
 
     both = jax.jit(lambda k, lw: (rs.systematic(k, lw, num), searched(k, lw)))
     keys = jax.random.split(jax.random.key(5), 8)

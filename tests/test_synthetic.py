@@ -274,7 +274,7 @@ def test_walk_towards_grows_and_walk_away_shrinks_the_box():
 def test_left_is_the_persons_anatomical_left(name, sign):
     # Facing the camera a person's left shoulder, hip, hand and foot are on the image's
     # right; seen from behind, on its left. (The generator's world frame is left-handed:
-    # u x f points to the person's right, and its limbs were once named the other way.)
+    # u x f points to the person's right.)
     s = make_sequence(name, seed=0, n_frames=10)
     u = s.joints2d[..., 0]
     for part in ("shoulder", "hip", "hand", "foot"):
@@ -381,8 +381,8 @@ def test_illumination_switch_and_constant_light():
 def test_occluder_hook_reports_partial_and_full_occlusion():
     # A 1 m wide panel slides across between the camera and the walker, overtaking them
     # at about 1.6 m/s relative (in the walker's plane), so that each of its edges takes
-    # 3 frames to pass over the walker (partial), with full occlusion in between.
-    # (A fast 1.6 m panel crossed the walker's width within one frame: no partial frames.)
+    # 3 frames to pass over the walker (partial), with full occlusion in between; a faster
+    # panel would cross the walker's width within one frame and leave no partial frame.
     wall = Occluder(
         size_m=(1.0, 2.4, 0.1), start_xz=(-1.3, 1.5), end_xz=(0.55, 1.5), t0_s=0.0, t1_s=2.0
     )
@@ -440,19 +440,33 @@ def test_occluder_mirror_x_follows_the_walkers_direction():
     assert set(sides) == {-1.0}
 
 
-@pytest.mark.parametrize("name", ["occlusion_box", "occlusion_person", "appearance_change"])
-def test_occlusion_and_appearance_scenarios(name):
-    spec = SCENARIOS[name]
-    if name == "appearance_change":
-        assert spec.shirt_change is not None and not spec.occluders
-        return
+@pytest.mark.parametrize(
+    "name, states",
+    [("occlusion_box", [0, 1, 2]), ("occlusion_person", [0, 1])],  # the box hides all of him
+)
+def test_occlusion_scenarios(name, states):
     s = make_sequence(name, seed=0, n_frames=66)
     occ = s.meta["occlusion"]
-    assert occ[0] == 0 and (occ == 1).any()
-    if name == "occlusion_box":
-        assert (occ == 2).any()  # the box hides the walker completely for a while
-    full = occ == 2
-    assert not s.visible[full].any()
+    assert occ[0] == 0 and np.unique(occ).tolist() == states
+    # The person is visible exactly in the frames that are not fully occluded.
+    np.testing.assert_array_equal(s.visible, occ < 2)
+
+
+def _chest_green_minus_red(s: SyntheticSequence, t: int) -> float:
+    """Median G - R of the person pixels around the torso joint of frame ``t``."""
+    u, v = np.rint(s.joints2d[t, _j(s, "torso")]).astype(int)
+    window = (slice(v - 8, v + 9), slice(u - 5, u + 6))
+    chest = s.colour[t][window][s.mask[t][window]].astype(int)
+    return float(np.median(chest[:, 1] - chest[:, 0]))
+
+
+def test_appearance_change_turns_the_red_top_green_at_frame_50():
+    spec = SCENARIOS["appearance_change"]
+    assert spec.shirt_change[0] == 50 and not spec.occluders
+    s = make_sequence("appearance_change", seed=0, n_frames=52)
+    before = [_chest_green_minus_red(s, t) for t in (48, 49)]
+    after = [_chest_green_minus_red(s, t) for t in (50, 51)]
+    assert max(before) < -50 and min(after) > 30
 
 
 def test_occlusion_return_reverses_in_depth_while_occluded():

@@ -10,7 +10,8 @@ import optax
 import pytest
 
 from cpf_jax import charts, rgbd, tuning
-from cpf_jax.colour import PARAM_CONSTRAINTS, ColourConfig, default_colour_params
+from cpf_jax import params as pp
+from cpf_jax.colour import COLOUR_PROPS, ColourConfig, build_colour_filter, default_colour_params
 from cpf_jax.kernels.background import median_background
 from cpf_jax.synthetic import make_sequence
 
@@ -30,7 +31,7 @@ def walk():
 
 @pytest.mark.parametrize("kind", ["identity", "softplus", "sigmoid"])
 def test_bijectors_round_trip_and_map_into_their_domains(kind):
-    constrain, unconstrain = tuning.BIJECTORS[kind]
+    constrain, unconstrain = pp.BIJECTORS[kind]
     values = {"identity": [-3.0, 0.0, 2.5], "softplus": [1e-3, 0.15, 28.0, 300.0]}
     x = jnp.asarray(values.get(kind, [1e-3, 0.3, 0.5, 0.999]), jnp.float32)
     np.testing.assert_allclose(np.asarray(constrain(unconstrain(x))), np.asarray(x), rtol=2e-4)
@@ -43,46 +44,81 @@ def test_bijectors_round_trip_and_map_into_their_domains(kind):
         assert np.all((y >= 0) & (y <= 1)) and np.all(np.diff(y) >= 0)
 
 
-def _tunable(params, constraints):
-    """Fields with a constraint whose values are inside its open domain."""
-    names = []
-    for name in constraints._fields:
-        kind = getattr(constraints, name)
-        if kind is None:
-            continue
+def _tunable(params, props):
+    """Trainable paths whose values lie inside their constraint's open domain, and the
+    trainable paths whose values sit on its boundary."""
+    inside, boundary = [], []
+    for path in pp.paths(props, trainable_only=True):
         try:
-            tuning.to_unconstrained(params, constraints, [name])
+            tuning.unconstrained(params, props, [path])
         except ValueError:
+            boundary.append(path)
             continue
-        names.append(name)
-    return names
+        inside.append(path)
+    return inside, boundary
+
+
+def _colour_and_rgbd(module):
+    if module == "colour":
+        return default_colour_params(), COLOUR_PROPS
+    return rgbd.default_rgbd_params(), rgbd.rgbd_props()
 
 
 @pytest.mark.parametrize("module", ["colour", "rgbd"])
 def test_params_round_trip_through_the_free_values(module):
-    if module == "colour":
-        params, constraints = default_colour_params(), PARAM_CONSTRAINTS
-    else:
-        params, constraints = rgbd.default_rgbd_params(), rgbd.PARAM_CONSTRAINTS
-    names = _tunable(params, constraints)
-    assert {"sigma", "tau", "motion"} <= set(names) or {"sigma_rgb", "tau", "motion"} <= set(names)
-    free = tuning.to_unconstrained(params, constraints, names)
-    back = tuning.to_params(free, params, constraints)
+    params, props = _colour_and_rgbd(module)
+    names, boundary = _tunable(params, props)
+    sigma = "histogram.sigma" if module == "colour" else "colour.sigma"
+    assert {sigma, "motion.tau", "motion.guided_fraction", "motion.size_velocity_decay"} <= set(
+        names
+    )
+    # Only the colour layer's layout rate starts on a bound (0, of its (0, 1) domain).
+    assert boundary == (["layout.rate"] if module == "colour" else [])
+    free = tuning.unconstrained(params, props, names)
+    assert set(free) == set(names)
+    back = pp.constrain(free, params, props)
     for a, b in zip(
         jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(back), strict=True
     ):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=2e-4, atol=1e-6)
+    # constrain maps the free values back: a moved free value moves the parameter.
+    moved = pp.constrain(dict(free, **{sigma: free[sigma] + 1.0}), params, props)
+    assert float(pp.get(moved, sigma)) > float(pp.get(params, sigma)) * 1.5
+
+
+@pytest.mark.parametrize("module", ["colour", "rgbd"])
+def test_non_trainable_paths_raise_a_clear_error_when_named(module):
+    params, props = _colour_and_rgbd(module)
+    trainable = set(pp.paths(props, trainable_only=True))
+    fixed = [p for p in pp.paths(props) if p not in trainable]
+    if module == "colour":
+        assert fixed == []  # every colour parameter is trainable: mark one as not
+        props = pp.replace(props, "histogram.lost_distance", pp.Prop("sigmoid", False))
+        fixed = ["histogram.lost_distance"]
+    else:  # the RGB-D filter's gates, counts and thresholds act only through comparisons
+        assert {"occlusion.transition", "occlusion.vote_threshold", "report.margin"} <= set(fixed)
+    for path in fixed:
+        with pytest.raises(ValueError, match=f"parameter '{path}' is not trainable"):
+            tuning.unconstrained(params, props, [path])
+        with pytest.raises(ValueError, match=f"parameter '{path}' is not trainable"):
+            pp.constrain({path: jnp.float32(0.0)}, params, props)
+        with pytest.raises(ValueError, match="not trainable"):
+            tuning.tune(lambda p, k, s: s.boxes, params, props, None, [path], steps=0)
 
 
 def test_names_that_cannot_be_tuned_raise_one_clear_error():
     p = default_colour_params()
-    with pytest.raises(ValueError, match="unknown parameter 'sigmaa'"):
-        tuning.to_unconstrained(p, PARAM_CONSTRAINTS, ["sigmaa"])
-    with pytest.raises(ValueError, match="'colour' cannot be tuned"):
-        tuning.to_unconstrained(rgbd.default_rgbd_params(), rgbd.PARAM_CONSTRAINTS, ["colour"])
-    # layout_rate defaults to 0, the boundary of its (0, 1) constraint.
-    with pytest.raises(ValueError, match="layout_rate.*boundary"):
-        tuning.to_unconstrained(p, PARAM_CONSTRAINTS, ["layout_rate"])
+    with pytest.raises(ValueError, match="no parameter 'histogram.sigmaa'.*sigma, lost_distance"):
+        tuning.unconstrained(p, COLOUR_PROPS, ["histogram.sigmaa"])
+    # A term holding a parameter that is not trainable cannot be tuned as a whole ...
+    with pytest.raises(ValueError, match="'occlusion.transition' is not trainable"):
+        tuning.unconstrained(rgbd.default_rgbd_params(), rgbd.rgbd_props(), ["occlusion"])
+    # ... a term of trainable ones can: one free value per field.
+    motion = tuning.unconstrained(p, COLOUR_PROPS, ["motion"])["motion"]
+    assert motion._fields == p.motion._fields
+    # layout.rate defaults to 0, the boundary of its (0, 1) constraint.
+    with pytest.raises(ValueError, match="layout.rate.*boundary"):
+        tuning.unconstrained(p, COLOUR_PROPS, ["layout.rate"])
 
 
 def _diou_numpy(pred, gt, visible):
@@ -122,11 +158,11 @@ def test_diou_loss_matches_numpy_under_jit_and_vmap():
 
 @pytest.mark.parametrize(
     "model, names",
-    [("histogram_only", ("sigma", "contrast_weight")), ("default", ("layout_weight",))],
+    [("histogram_only", ("histogram.sigma", "contrast.weight")), ("default", ("layout.weight",))],
 )
 def test_colour_gradient_matches_finite_differences(walk, model, names):
     """One filter step (the estimate is a smooth weighted mean of fixed particles): the
-    gradient of the loss with respect to sigma and contrast_weight (histogram-only
+    gradient of the loss with respect to sigma and the contrast weight (histogram-only
     model) and to the default's layout weight is the numerical one."""
     data, config = walk
     if model == "default":
@@ -134,13 +170,12 @@ def test_colour_gradient_matches_finite_differences(walk, model, names):
             ColourConfig(), n_particles=config.n_particles, window=config.window
         )
     two = jax.tree_util.tree_map(lambda x: x[:, :2], data)
-    loss = jax.jit(tuning.make_loss(tuning.colour_runner(config), PARAM_CONSTRAINTS))
-    p = default_colour_params()._replace(sigma=jnp.float32(0.3))
-    free = tuning.to_unconstrained(p, PARAM_CONSTRAINTS, names)
+    run = tuning.runner(build_colour_filter(config))
+    loss = jax.jit(tuning.make_loss(run, COLOUR_PROPS))
+    p = pp.replace(default_colour_params(), "histogram.sigma", jnp.float32(0.3))
+    free = tuning.unconstrained(p, COLOUR_PROPS, names)
     key = jax.random.PRNGKey(4)
-    grads = jax.jit(jax.grad(tuning.make_loss(tuning.colour_runner(config), PARAM_CONSTRAINTS)))(
-        free, p, key, two
-    )
+    grads = jax.jit(jax.grad(tuning.make_loss(run, COLOUR_PROPS)))(free, p, key, two)
     for n in names:
         eps = 0.02
         up = dict(free, **{n: free[n] + eps})
@@ -150,19 +185,23 @@ def test_colour_gradient_matches_finite_differences(walk, model, names):
         assert float(grads[n]) == pytest.approx(fd, rel=0.1, abs=2e-5), n
 
 
+def _start():
+    """The defaults with a too-wide sigma and a too-small contrast weight."""
+    start = pp.replace(default_colour_params(), "histogram.sigma", jnp.float32(1.0))
+    return pp.replace(start, "contrast.weight", jnp.float32(2.0))
+
+
 @pytest.mark.run_bound
 def test_tune_lowers_the_training_loss_and_stays_in_the_domain(walk):
     data, config = walk
-    run = tuning.colour_runner(config)
-    start = default_colour_params()._replace(
-        sigma=jnp.float32(1.0), contrast_weight=jnp.float32(2.0)
-    )
-    names = ("sigma", "contrast_weight")
+    run = tuning.runner(build_colour_filter(config))
+    start = _start()
+    names = ("histogram.sigma", "contrast.weight")
     seen = []
     result = tuning.tune(
         run,
         start,
-        PARAM_CONSTRAINTS,
+        COLOUR_PROPS,
         data,
         names,
         optimizer=optax.adam(0.3),
@@ -172,20 +211,23 @@ def test_tune_lowers_the_training_loss_and_stays_in_the_domain(walk):
     )
     assert len(result.history) == 8 and seen == result.history
     assert not any(e["skipped"] for e in result.history)
-    assert float(result.params.sigma) > 0 and float(result.params.contrast_weight) > 0
+    assert float(result.params.histogram.sigma) > 0 and float(result.params.contrast.weight) > 0
+    assert float(result.params.histogram.sigma) != pytest.approx(1.0)  # it moved
     # Every other field is untouched.
-    for name in set(start._fields) - set(names):
+    others = [path for path in pp.paths(COLOUR_PROPS) if path not in names]
+    assert len(others) == len(list(pp.paths(COLOUR_PROPS))) - 2
+    for path in others:
         for a, b in zip(
-            jax.tree_util.tree_leaves(getattr(start, name)),
-            jax.tree_util.tree_leaves(getattr(result.params, name)),
+            jax.tree_util.tree_leaves(pp.get(start, path)),
+            jax.tree_util.tree_leaves(pp.get(result.params, path)),
             strict=True,
         ):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    loss = jax.jit(tuning.make_loss(run, PARAM_CONSTRAINTS, keys=4))
+    loss = jax.jit(tuning.make_loss(run, COLOUR_PROPS, keys=4))
     key = jax.random.PRNGKey(99)
 
     def value(p):
-        return float(loss(tuning.to_unconstrained(p, PARAM_CONSTRAINTS, names), p, key, data))
+        return float(loss(tuning.unconstrained(p, COLOUR_PROPS, names), p, key, data))
 
     assert value(result.params) < value(start) - 0.1  # measured: 0.60 -> 0.31-0.33
 
@@ -194,12 +236,12 @@ def test_tune_skips_steps_whose_gradient_is_not_finite(walk):
     data, _ = walk
 
     def broken(params, key, seq):  # a NaN box whenever sigma is involved
-        return seq.boxes * (params.sigma * jnp.nan)
+        return seq.boxes * (params.histogram.sigma * jnp.nan)
 
     start = default_colour_params()
-    result = tuning.tune(broken, start, PARAM_CONSTRAINTS, data, ("sigma",), steps=2)
-    assert all(e["skipped"] for e in result.history)
-    assert float(result.params.sigma) == pytest.approx(float(start.sigma))
+    result = tuning.tune(broken, start, COLOUR_PROPS, data, ("histogram.sigma",), steps=2)
+    assert len(result.history) == 2 and all(e["skipped"] for e in result.history)
+    assert float(result.params.histogram.sigma) == pytest.approx(float(start.histogram.sigma))
 
 
 def test_rgbd_gradients_are_finite_and_reach_the_likelihood():
@@ -211,15 +253,22 @@ def test_rgbd_gradients_are_finite_and_reach_the_likelihood():
     data = tuning.stack_sequences([seq], [bg])
     w, h = (float(v) for v in seq.boxes[:, 2:].max(0))
     config = rgbd.RGBDConfig(n_particles=64).with_window((w, h), seq.colour.shape[1:3])
-    params = rgbd.default_rgbd_params(config)
-    names = ("sigma_rgb", "sigma_depth", "log_occluded", "p_occlude", "beta_a")
-    free = tuning.to_unconstrained(params, rgbd.PARAM_CONSTRAINTS, names)
-    loss = tuning.make_loss(tuning.rgbd_runner(config), rgbd.PARAM_CONSTRAINTS)
+    params, props = rgbd.default_rgbd_params(config), rgbd.rgbd_props(config)
+    names = (
+        "colour.sigma",
+        "depth.sigma",
+        "occlusion.log_occluded",
+        "occlusion.p_occlude",
+        "beta.a",
+    )
+    free = tuning.unconstrained(params, props, names)
+    loss = tuning.make_loss(tuning.runner(rgbd.build_rgbd_filter(config)), props)
     value, grads = jax.jit(jax.value_and_grad(loss))(free, params, jax.random.PRNGKey(0), data)
     assert np.isfinite(float(value))
     flat = {n: np.asarray(g) for n, g in grads.items()}
+    assert set(flat) == set(names)
     assert all(np.all(np.isfinite(g)) for g in flat.values()), flat
-    assert np.abs(flat["sigma_depth"]).max() > 0 and np.abs(flat["beta_a"]).max() > 0, flat
+    assert np.abs(flat["depth.sigma"]).max() > 0 and np.abs(flat["beta.a"]).max() > 0, flat
 
 
 def test_stack_sequences_rejects_mixed_lengths():
@@ -234,17 +283,15 @@ def test_tune_with_validation_returns_the_best_validated_parameters(walk):
     data, config = walk
     train = jax.tree_util.tree_map(lambda x: x[:1], data)
     val = jax.tree_util.tree_map(lambda x: x[1:], data)
-    run = tuning.colour_runner(config)
-    start = default_colour_params()._replace(
-        sigma=jnp.float32(1.0), contrast_weight=jnp.float32(2.0)
-    )
+    run = tuning.runner(build_colour_filter(config))
+    start = _start()
     key = jax.random.PRNGKey(5)
     result = tuning.tune(
         run,
         start,
-        PARAM_CONSTRAINTS,
+        COLOUR_PROPS,
         train,
-        ("sigma",),
+        ("histogram.sigma",),
         optimizer=optax.adam(0.4),
         steps=6,
         key=key,
@@ -253,22 +300,23 @@ def test_tune_with_validation_returns_the_best_validated_parameters(walk):
     )
     checked = [e for e in result.history if "validation" in e]
     assert [e["step"] for e in checked] == [1, 3, 5]
-    loss = tuning.make_loss(run, PARAM_CONSTRAINTS)
-    free0 = tuning.to_unconstrained(start, PARAM_CONSTRAINTS, ("sigma",))
+    loss = tuning.make_loss(run, COLOUR_PROPS)
+    free0 = tuning.unconstrained(start, COLOUR_PROPS, ("histogram.sigma",))
     v0 = float(jax.jit(loss)(free0, start, jax.random.fold_in(key, 1), val))
     assert result.start_validation == pytest.approx(v0, rel=1e-5)
-    candidates = [(v0, float(start.sigma))] + [(e["validation"], e["sigma"]) for e in checked]
+    candidates = [(v0, float(start.histogram.sigma))]
+    candidates += [(e["validation"], e["histogram.sigma"]) for e in checked]
     best_sigma = min(candidates)[1]
-    assert float(result.params.sigma) == pytest.approx(best_sigma, rel=1e-5)
+    assert float(result.params.histogram.sigma) == pytest.approx(best_sigma, rel=1e-5)
     assert min(candidates)[0] < v0  # the check can fail: tuning helped on validation
 
 
 def test_progress_prints_each_step(capsys):
-    show = tuning.progress("run", ("sigma", "beta_a"))
-    show({"step": 3, "loss": 0.25, "sigma": 0.125, "beta_a": [1.0, 3.0], "skipped": False})
-    show({"step": 4, "loss": 0.2, "sigma": 0.1, "beta_a": [2.0, 2.0], "validation": 0.3})
+    show = tuning.progress("run", ("colour.sigma", "beta.a"))
+    show({"step": 3, "loss": 0.25, "colour.sigma": 0.125, "beta.a": [1.0, 3.0], "skipped": False})
+    show({"step": 4, "loss": 0.2, "colour.sigma": 0.1, "beta.a": [2.0, 2.0], "validation": 0.3})
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0] == "run step   3 loss 0.2500 sigma 0.125 beta_a 2.000"
+    assert lines[0] == "run step   3 loss 0.2500 colour.sigma 0.125 beta.a 2.000"
     assert lines[1].endswith("validation 0.3000")
 
 

@@ -38,6 +38,7 @@ def contain(
     A window edge on the frame's edge does not bound the boxes (the part of a box beyond
     the frame is not counted anyway), and a lost target's frame-wide search is left free.
     """
+    particles = jnp.asarray(particles)
     wh, ww = min(config.window[0], height), min(config.window[1], width)
     w = jax.nn.softmax(log_weights)
     mean = w @ particles[:, :2]

@@ -109,9 +109,8 @@ class RealSenseSource(LiveSource):
     def _rewind(self, playback: Any) -> Any:
         """Pause a recording at its start, as fast as it can be read (not real time).
 
-        Playback starts with the pipeline, in real time: the first frame could go out
-        before ``set_real_time(False)``, and was then lost about one run in three
-        (pyrealsense2 2.59, ``tests/test_io.py``). Paused, rewound and drained here, it
+        Playback starts with the pipeline, in real time, so the first frame can go out
+        before ``set_real_time(False)`` and be lost. Paused, rewound and drained here, it
         is resumed by :meth:`__iter__`, so every recorded frame arrives, in order.
         """
         from datetime import timedelta

@@ -26,6 +26,27 @@ __all__ = ["load_groundtruth", "load_occlusion"]
 _SEP = re.compile(r"[,;\s]+")
 
 
+def _parse_boxes(path: Path, lines: list[str]) -> tuple[np.ndarray, list[int]]:
+    """``[T, 4] float32`` rows of the box lines as written, and their 1-based line numbers;
+    ``#`` lines are skipped, any other line must hold 4 numbers."""
+    rows, numbers = [], []
+    for n, line in enumerate(lines, start=1):
+        text = line.strip()
+        if text.startswith("#"):
+            continue
+        fields = [f for f in _SEP.split(text) if f]
+        try:
+            if len(fields) != 4:
+                raise ValueError
+            rows.append([float(f) for f in fields])
+            numbers.append(n)
+        except ValueError:
+            raise SourceError(
+                f"{path}:{n}: expected 4 numbers 'x,y,w,h', got {line.strip()!r}"
+            ) from None
+    return np.asarray(rows, np.float32).reshape(-1, 4), numbers
+
+
 def load_groundtruth(path: Path | str, one_based: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Read a box file: returns ``boxes [T, 4] float32`` (xywh, 0-based) and ``visible [T] bool``.
 
@@ -46,22 +67,7 @@ def load_groundtruth(path: Path | str, one_based: bool = True) -> tuple[np.ndarr
         raise SourceError(f"{path}: cannot read ground truth ({e.strerror or e})") from None
     while lines and not lines[-1].strip():
         lines.pop()
-    rows, numbers = [], []
-    for n, line in enumerate(lines, start=1):
-        text = line.strip()
-        if text.startswith("#"):
-            continue
-        fields = [f for f in _SEP.split(text) if f]
-        try:
-            if len(fields) != 4:
-                raise ValueError
-            rows.append([float(f) for f in fields])
-            numbers.append(n)
-        except ValueError:
-            raise SourceError(
-                f"{path}:{n}: expected 4 numbers 'x,y,w,h', got {line.strip()!r}"
-            ) from None
-    boxes = np.asarray(rows, np.float32).reshape(-1, 4)
+    boxes, numbers = _parse_boxes(path, lines)
     finite = np.all(np.isfinite(boxes), axis=1)
     visible = finite & (np.nan_to_num(boxes[:, 2]) > 0) & (np.nan_to_num(boxes[:, 3]) > 0)
     conventional = np.all(boxes == 0, axis=1) | np.all(np.isnan(boxes), axis=1)

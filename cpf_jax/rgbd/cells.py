@@ -24,6 +24,7 @@ them per flag state). Every count is exact (``rect_reduce`` over ``[N, C, 4]`` r
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -153,6 +154,37 @@ def border_terms(
     return l_border, ratio
 
 
+def _colour_stats(
+    body: BodyParams,
+    sqrt_q: Array,
+    body_template: Array | None,
+    vis_states: np.ndarray,
+    n_fg: int,
+    counts: Array,
+) -> Array:
+    """Per-cell ``[m, C, 3 (+ S)]``: pixels, squared distance to the template, background
+    pixels (and the body term per state, pooled inside the reduction so that the
+    ``[N, C, B]`` counts never exist at once) of cell counts ``[m, C, B]``."""
+    total = jnp.sum(counts, axis=-1)
+    d2 = squared_bhattacharyya(counts, sqrt_q, total)
+    out = jnp.stack([total, d2, counts[..., -1]], axis=-1)
+    if body_template is None:
+        return out
+    l_body = body_log_likelihood(body, body_template, counts, vis_states, n_fg)
+    n_states = vis_states.shape[0]
+    return jnp.concatenate(
+        [out, jnp.broadcast_to(l_body[:, None, :], (*out.shape[:2], n_states))], axis=-1
+    )
+
+
+def _depth_stats(near_thr: Array, bins: tuple[int, float, float], counts: Array) -> Array:
+    """Per-cell ``[m, C, 3]``: median depth, depth samples and the share nearer than
+    ``near_thr [C]`` of depth-bin counts ``[m, C, Z]``."""
+    med, total = histogram_quantile(counts, *bins)
+    near = histogram_fraction_below(counts, near_thr, *bins)
+    return jnp.stack([med, total, near], axis=-1)
+
+
 def cell_terms(
     config: RGBDConfig,
     params: RGBDParams,
@@ -176,26 +208,10 @@ def cell_terms(
     area = clipped_area(rects, width, height)
     vis_states = body_states(config)  # [S, C]
     n_states = vis_states.shape[0]
-
-    def colour_stats(counts: Array) -> Array:  # [m, C, B] -> [m, C, 3 (+ S)]
-        total = jnp.sum(counts, axis=-1)
-        d2 = squared_bhattacharyya(counts, sqrt_q, total)
-        out = jnp.stack([total, d2, counts[..., -1]], axis=-1)
-        if body_template is None:
-            return out
-        # Pooled inside the reduction, so the [N, C, B] counts never exist at once.
-        l_body = body_log_likelihood(
-            params.body, body_template, counts, vis_states, config.n_fg_bins
-        )
-        return jnp.concatenate(
-            [out, jnp.broadcast_to(l_body[:, None, :], (*out.shape[:2], n_states))], axis=-1
-        )
-
-    def depth_stats(counts: Array) -> Array:  # [m, C, Z] -> [m, C, 3]
-        med, total = histogram_quantile(counts, nz, zlo, zhi)
-        near = histogram_fraction_below(counts, near_thr, nz, zlo, zhi)
-        return jnp.stack([med, total, near], axis=-1)
-
+    colour_stats = functools.partial(
+        _colour_stats, params.body, sqrt_q, body_template, vis_states, config.n_fg_bins
+    )
+    depth_stats = functools.partial(_depth_stats, near_thr, (nz, zlo, zhi))
     cs = rect_reduce(
         obs.colour_bins, rects, colour_stats, n_bins=config.n_bins, window=config.window
     )

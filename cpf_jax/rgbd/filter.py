@@ -51,6 +51,7 @@ from cpf_jax.rgbd.templates import (
     CellColour,
     body_template_init,
     body_template_update,
+    cell_colour_init,
     cell_colour_update,
 )
 from cpf_jax.types import Frame, check_frame, usable_box
@@ -113,7 +114,7 @@ def rgbd_init(
     background = None if context is None else context.background
     bg = as_background(background, frame)
     obs = observe(config, params.foreground, frame, bg)
-    hist, med, _ = cell_statistics(config, obs, box)
+    _, med, _ = cell_statistics(config, obs, box)
     particles = at_rest(box, config.n_particles)
     if config.init_spread > 0:
         jitter = jax.random.normal(key, (config.n_particles, 2)) * config.init_spread
@@ -128,7 +129,7 @@ def rgbd_init(
     return RGBDState(
         cloud=uniform_cloud(particles),
         flags=jnp.zeros((config.n_particles,), jnp.int32),
-        colour=CellColour(hist),
+        colour=cell_colour_init(config, obs, box),
         depth=depth_template_init(med, box),
         body=body_template_init(config, obs, box),
         background=bg,

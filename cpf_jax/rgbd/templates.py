@@ -20,11 +20,12 @@ from jax import Array
 
 from cpf_jax.kernels.histogram import bhattacharyya, normalise_counts
 from cpf_jax.rgbd.config import RGBDConfig
-from cpf_jax.rgbd.observe import Observation, body_histogram
+from cpf_jax.rgbd.observe import Observation, body_histogram, cell_statistics
 from cpf_jax.rgbd.params import BodyParams, CellColourParams
 
 __all__ = [
     "CellColour",
+    "cell_colour_init",
     "cell_colour_update",
     "BodyTemplate",
     "body_template_init",
@@ -34,6 +35,12 @@ __all__ = [
 
 class CellColour(NamedTuple):
     histograms: Array  # [C, B] normalised histograms of the cells' foreground (+ background bin)
+
+
+def cell_colour_init(config: RGBDConfig, obs: Observation, box: Array) -> CellColour:
+    """The initial box's cell histograms."""
+    hist, _, _ = cell_statistics(config, obs, box)
+    return CellColour(hist)
 
 
 def cell_colour_update(
