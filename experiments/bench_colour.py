@@ -9,25 +9,24 @@ The figure (``bench_colour.png``) shows frames/s against N for the step's varian
 the OpenCV loop, and the thesis's Table 3.2 grid (frames/s per box size against N).
 
 "Colour step" = one jitted ``step`` of the library's colour filter
-(``cpf_jax.colour.build_colour_filter``) on a 512 x 424 frame: bins of the
-frame, propagation of the 8-tuple state (random walk by default), exact histograms of every
-particle's box parts and surround ring from one windowed integral histogram,
-the layout term's 7 x 3 cell means from a luminance summed-area table,
-log-likelihood, ESS, estimate, the estimate's own histogram, template update,
-systematic resampling. It is timed with the library defaults, without the
-layout term and template update (``ColourConfig.histogram_only``), with the
-gradient layout, with the 12 x 3 layout that was the default until 2026-11-28,
-and with the same code configured as the thesis's model (one
-8x8 H-S histogram per box, the work per particle of the OpenCV loop; the
-8-tuple AR1 with motion-guided sampling). Each variant's share of timed steps on the
-histogram window is recorded (``windowed``, ``<variant>_windowed``; in the table, a
-share below 100 % follows the time): the thesis's model runs the exact whole-frame
-fallback on most steps at N >= 10,000, because its AR1 box sizes drift and the cloud's
-extreme boxes outgrow the window. The like-for-like step is timed too: the OpenCV
-loop's likelihood (the thesis's one histogram per box, nothing else) on the default
-random walk (``loop_likelihood``). With nothing but the histogram to pin the box's size,
-its random-walk sizes drift on this still frame as well, and at N = 100,000 most of its
-steps also take the whole-frame path.
+(``cpf_jax.colour.build_colour_filter``) on a 512 x 424 frame: bins of the frame,
+propagation of the 8-tuple state (random walk by default), exact histograms of every
+particle's box parts and surround ring from one windowed integral histogram, the layout
+term's 7 x 3 cell means from a luminance summed-area table, log-likelihood, ESS,
+estimate, the estimate's own histogram, template update, systematic resampling. It is
+timed with the library defaults, without the layout term and template update
+(``ColourConfig.histogram_only``), with the gradient layout, with a finer 12 x 3 layout
+grid, and with the same code configured as the thesis's model (one 8x8 H-S histogram per
+box, the work per particle of the OpenCV loop; the 8-tuple AR1 with motion-guided
+sampling). Each variant's share of timed steps on the histogram window is recorded
+(``windowed``, ``<variant>_windowed``; in the table, a share below 100 % follows the
+time): the thesis's model runs the exact whole-frame fallback on most steps at N >=
+10,000, because its AR1 box sizes drift and the cloud's extreme boxes outgrow the
+window. The like-for-like step is timed too: the OpenCV loop's likelihood (the thesis's
+one histogram per box, nothing else) on the default random walk (``loop_likelihood``).
+With nothing but the histogram to pin the box's size, its random-walk sizes drift on
+this still frame as well, and at N = 100,000 most of its steps also take the whole-frame
+path.
 
 The baseline does the same per frame with OpenCV and NumPy: one cvtColor, then
 per particle crop + ``cv2.calcHist`` on H and S + ``cv2.compareHist``
@@ -36,11 +35,9 @@ above (its cost is per particle).
 
 The main settings (N = 1k, 10k, 100k x the variants) are timed interleaved, in
 ``ROUNDS`` rounds, and the default step is re-timed in ``--fresh-repeats`` more fresh
-processes: this 2-core host's speed drifts by 20-40 % over minutes and between processes.
+processes: a shared host's speed drifts over minutes and between processes.
 The OpenCV loop is timed in the same rounds (``OPENCV_STEPS_PER_ROUND`` steps at the end
-of each), so that the speed-up divides times from the same minutes. (Until 2026-11-29 it
-was timed once after the JAX rounds, 3 steps at N = 10,000: its time swung from 499 to 817
-ms between runs, and the speed-up with it.)
+of each), so that the speed-up divides times from the same minutes.
 
 ``--tune-malloc`` (default on) calls ``cpf_jax.cpu_tuning.tune_malloc()`` before
 JAX allocates anything. ``--tune-xla`` (default on) adds
@@ -269,7 +266,7 @@ VARIANTS = {
     # The default without its layout term and template update: what those cost.
     "histogram_only": HISTOGRAM_ONLY,
     "gradient": {"layout_feature": "gradient"},
-    # The default until 2026-11-28 (ColourConfig.layout): what the finer grid costs.
+    # A finer layout grid than the default (ColourConfig.layout): what it costs.
     "layout_12x3": {"layout": (12, 3)},
 }
 
@@ -347,8 +344,8 @@ def time_jax_steps_interleaved(
 
     Each setting is compiled and warmed up first; then ``rounds`` rounds time
     ``repeats // rounds`` steps of every setting in turn (each continuing its own
-    particle cloud). This host's speed drifts over minutes (±20-40 %): timed one
-    after another, a slow spell fell on one setting alone; interleaved, it falls on all.
+    particle cloud). The host's speed drifts over minutes: timed one after another, a
+    slow spell falls on one setting alone; interleaved, it falls on all.
     ``each_round()`` (optional) runs at the end of every round: the OpenCV loop's
     timing (``OpenCVLoop``), so that the speed-up compares the same minutes.
     """
@@ -440,8 +437,8 @@ class OpenCVLoop:
         return _median_ms(self.times)
 
 
-#: OpenCV steps timed per round of the main JAX timings, by N (about 0.6-0.8 s a step at
-#: N = 10,000 on the Intel host): 10 and 5 steps over the ``ROUNDS`` rounds.
+#: OpenCV steps timed per round of the main JAX timings, by N: 10 and 5 steps over the
+#: ``ROUNDS`` rounds.
 OPENCV_STEPS_PER_ROUND = {1_000: 2, 10_000: 1}
 
 
@@ -450,8 +447,7 @@ def time_table_pass(window: tuple[int, int], repeats: int = 50) -> dict:
     (``t + 1``) over an array shaped like the window's stored integral histogram
     (``[h + 1, w + 1, channels]`` uint16). The step writes and reads that table about
     three times (x pass, row loop, corner gathers), so hosts whose caches move it
-    slowly run the step slowly whatever its code (2026-11-29: 1.5-2.0 ms for the
-    16.3 MB table on the 2-core Intel Xeon host, where the step misses its targets)."""
+    slowly run the step slowly whatever its code."""
     channels = H._table_channels(ColourConfig().n_bins, jnp.uint16)
     table = jnp.zeros((window[0] + 1, window[1] + 1, channels), jnp.uint16)
     bump = jax.jit(lambda t: t + jnp.uint16(1))

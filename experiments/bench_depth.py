@@ -38,7 +38,7 @@ from jax import lax
 
 from cpf_jax.kernels import graph as gk
 from cpf_jax.kernels import spin as sk
-from cpf_jax.points import PointFilterConfig, body_model
+from cpf_jax.points import PointConfig, body_model
 from cpf_jax.synthetic import make_sequence
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -74,7 +74,7 @@ def body_window(frame_index: int = 190):
     x, y, w, h = seq.boxes[frame_index]
     # A 256 x 192 crop centred on the person at scale 1 (the box is the window itself).
     box = jnp.array([x + w / 2 - 96, y + h / 2 - 128, 192, 256], jnp.float32)
-    cfg = PointFilterConfig(
+    cfg = PointConfig(
         window=WINDOW,
         box_margin=0.0,
         threshold_depth_mm=None,
@@ -228,7 +228,7 @@ def main() -> None:
     rng = np.random.default_rng(0)
     # Patch just large enough for the support at the nearest body depth (kernels.spin).
     z_near = float(np.nanmin(np.where(valid, points[..., 2], np.nan)))
-    fx = float(PointFilterConfig().intrinsics[0])
+    fx = float(PointConfig().intrinsics[0])
     radius = sk.support_patch_radius(bin_size, 20, z_near, fx)
     spin = {}
     for n in (100, 1000):

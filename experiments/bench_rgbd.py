@@ -71,6 +71,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from cpf_jax.filter import Context  # noqa: E402
 from cpf_jax.kernels.background import Background  # noqa: E402
 from cpf_jax.kernels.boxes import xywh_to_rect  # noqa: E402
 from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params  # noqa: E402
@@ -109,7 +110,9 @@ def time_step(variant: str, n: int, scene, repeats: int) -> dict:
     params = default_rgbd_params(config)
     step = jax.jit(lambda k, s, f: filt.step(params, k, s, f))
     key = jax.random.key(0)
-    state = jax.jit(lambda k, f, b: filt.init(params, k, f, b, bg))(key, first, jnp.asarray(box))
+    context = Context(background=bg)
+    init = jax.jit(lambda k, f, b: filt.init(params, k, f, b, context))
+    state = init(key, first, jnp.asarray(box))
     times, windowed, info = bench_colour.timed_steps(step, state, frame, key, repeats, WARMUP)
     ms = float(np.median(times) * 1e3)
     return {

@@ -37,16 +37,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import depth_points as dp  # noqa: E402
 
-from cpf_jax.cascade import (  # noqa: E402
-    CascadeConfig,
-    build_cascade,
-    default_cascade_params,
-    track_cascade,
-)
+from cpf_jax import params as pp  # noqa: E402
+from cpf_jax.cascade import CascadeConfig, build_cascade, default_cascade_params  # noqa: E402
 from cpf_jax.colour import ColourConfig  # noqa: E402
+from cpf_jax.filter import Context, track  # noqa: E402
 from cpf_jax.kernels.background import median_background  # noqa: E402
 from cpf_jax.kernels.boxes import iou  # noqa: E402
-from cpf_jax.points import PointFilterConfig  # noqa: E402
+from cpf_jax.points import PointConfig  # noqa: E402
 from cpf_jax.rgbd import RGBDConfig  # noqa: E402
 from cpf_jax.synthetic import make_sequence  # noqa: E402
 from cpf_jax.types import Frame  # noqa: E402
@@ -56,14 +53,12 @@ SOURCES = ("gt", "grid-occlusion", "rgb")
 N_BOX = 150
 
 
-def _box_config(source: str, seq) -> RGBDConfig:
+def _box_config(source: str, seq) -> ColourConfig | RGBDConfig:
     wh = tuple(float(v) for v in seq.boxes[0, 2:])
     hw = seq.colour.shape[1:3]
     if source == "rgb":
-        # The histogram-only colour model (the default until 2026-11-27), with which
-        # the committed table was made.
-        colour = ColourConfig(n_particles=N_BOX).histogram_only().with_window(wh, hw)
-        return RGBDConfig(variant="rgb", n_particles=N_BOX, colour=colour, window=colour.window)
+        # The histogram-only colour model, with which the results table was made.
+        return ColourConfig(n_particles=N_BOX).histogram_only().with_window(wh, hw)
     return RGBDConfig(variant=source, n_particles=N_BOX).with_window(wh, hw)
 
 
@@ -79,20 +74,18 @@ def _background(case: str, seq):
 def run_cascade(case: str, seq, source: str, keys: int, use_fg: bool, config_kw: dict):
     config = CascadeConfig(
         box=_box_config(source, seq),
-        points=PointFilterConfig(weighting="combined", **config_kw),
+        points=PointConfig(weighting="combined", **config_kw),
         foreground=use_fg,
     )
     filt = build_cascade(config)
     params = default_cascade_params(config)
-    params = params._replace(
-        points=params.points._replace(joint_depth_offset=jnp.asarray(dp.JOINT_OFFSET))
-    )
+    params = pp.replace(params, "points.estimate.joint_depth_offset", jnp.asarray(dp.JOINT_OFFSET))
     idx = [list(seq.joint_names).index(n) for n in dp.TRACKED]
     frames = Frame(jnp.asarray(seq.colour), jnp.asarray(seq.depth))
     start = jnp.asarray(seq.joints2d[0, idx] + 0.5)
-    bg = _background(case, seq)
+    context = Context(background=_background(case, seq), points=start)
     box = jnp.asarray(seq.boxes[0])
-    go = jax.jit(lambda k: track_cascade(filt, params, k, frames, box, start, bg)[1])
+    go = jax.jit(lambda k: track(filt, params, k, frames, box, context)[1])
     out = []
     for k in range(keys):
         t0 = time.perf_counter()
@@ -137,9 +130,7 @@ def main() -> None:
                 runs, idx = run_cascade(case, seq, source, args.keys, use_fg, config_kw)
                 srs = []
                 for info, _ in runs:
-                    ious = np.asarray(
-                        iou(jnp.asarray(info.box.estimate), jnp.asarray(seq.boxes[1:]))
-                    )
+                    ious = np.asarray(iou(jnp.asarray(info.estimate), jnp.asarray(seq.boxes[1:])))
                     srs.append(100.0 * float(np.mean(ious >= 0.5)))
                 box_sr = float(np.mean(srs))
                 runs = [(info.points, t) for info, t in runs]

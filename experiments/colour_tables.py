@@ -25,7 +25,7 @@ Tables:
   contrast term) to ours at N = 100, a term at a time.
 * ``likelihood_terms``: the default against the histogram-only model
   (``ColourConfig.histogram_only``: no layout term, no template update, unseen
-  colours as background; the default until 2026-11-27), against the default
+  colours as background), against the default
   without each of those three, and against the alternatives (layout weight 20,
   the gradient layout, the mixture contrast) at N = 100: walking mean and
   minimum, the two look-alike scenes (``dark_clothes``, ``distractor_pass``),
@@ -53,8 +53,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpf_jax import charts
-from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params, track_boxes
+from cpf_jax import params as pp
+from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params
 from cpf_jax.dynamics import SIZE_VELOCITY_MODELS, THESIS_TAU
+from cpf_jax.filter import track_boxes
 from cpf_jax.metrics import run_success_curve, summarise
 from cpf_jax.synthetic import make_sequence
 from cpf_jax.types import Frame
@@ -76,8 +78,28 @@ EXTRA = ("distractor_pass", "light_switch", "dark_clothes")
 # variants are scored on them too.
 LOOKALIKE = ("dark_clothes", "distractor_pass")
 #: The ``likelihood_terms`` row without the default's layout term, template update and
-#: neutral unseen colours (``ColourConfig.histogram_only``; the default until 2026-11-27).
+#: neutral unseen colours (``ColourConfig.histogram_only``).
 HISTOGRAM_ONLY = "histogram only (no layout, no template update, unseen background)"
+#: The ``likelihood_terms`` row with the finer 12x3 layout grid; the label is a key of the
+#: results JSON.
+LAYOUT_12X3 = "layout 12x3 (default until 2026-11-28)"
+#: The parameters the results record (``meta.params``): JSON key -> parameter path.
+PARAM_KEYS = {
+    "sigma": "histogram.sigma",
+    "contrast_weight": "contrast.weight",
+    "contrast_threshold": "contrast.threshold",
+    "fill_ratio": "contrast.fill_ratio",
+    "layout_weight": "layout.weight",
+    "layout_rate": "layout.rate",
+    "aspect_mean": "aspect.mean",
+    "aspect_sigma": "aspect.sigma",
+    "tau": "motion.tau",
+    "template_rate": "template.rate",
+    "template_max_distance": "template.max_distance",
+    "lost_distance": "histogram.lost_distance",
+    "robust_radius": "estimate.robust_radius",
+    "size_velocity_decay": "motion.size_velocity_decay",
+}
 SPEEDS = {"slow": "walk_across_slow", "medium": "walk_across_medium", "fast": "walk_across_fast"}
 # Table 3.4's rows: the thesis's original model and its three variants, plus the random walk.
 MODELS = {
@@ -104,7 +126,7 @@ def _runner(config: ColourConfig):
     # lax.map (not vmap) over filter seeds: the tables were made this way (vmap now
     # runs the same branches, but its per-key floating-point results differ).
     def run(params, keys, frames, box):
-        return jax.lax.map(lambda k: track_boxes(filt, params, k, frames, box), keys)
+        return jax.lax.map(lambda k: track_boxes(filt, params, k, frames, box)[0], keys)
 
     return jax.jit(run)
 
@@ -182,20 +204,20 @@ def likelihood_term_variants(base: ColourConfig, params) -> dict:
         "no layout": (dataclasses.replace(base, layout=None), params),
         "no template update": (dataclasses.replace(base, template_update=False), params),
         "unseen background": (dataclasses.replace(base, unseen="background"), params),
-        "layout_weight 20": (base, params._replace(layout_weight=jnp.float32(20.0))),
+        "layout_weight 20": (base, pp.replace(params, "layout.weight", jnp.float32(20.0))),
         f"gradient layout {grid}": (dataclasses.replace(base, layout_feature="gradient"), params),
-        # The default grid until 2026-11-28: finer, slower (experiments/bench_colour.py).
-        "layout 12x3 (default until 2026-11-28)": (
-            dataclasses.replace(base, layout=(12, 3)),
-            params,
-        ),
+        # A finer grid, slower (experiments/bench_colour.py).
+        LAYOUT_12X3: (dataclasses.replace(base, layout=(12, 3)), params),
         "mixture contrast, histogram only": (
             dataclasses.replace(base.histogram_only(), contrast="mixture"),
             params,
         ),
         f"mixture + layout {grid} (contrast_weight 5, layout_weight 20, no update)": (
             dataclasses.replace(base, contrast="mixture", template_update=False),
-            params._replace(contrast_weight=jnp.float32(5.0), layout_weight=jnp.float32(20.0)),
+            params._replace(
+                contrast=params.contrast._replace(weight=jnp.float32(5.0)),
+                layout=params.layout._replace(weight=jnp.float32(20.0)),
+            ),
         ),
     }
 
@@ -402,7 +424,7 @@ def main(argv=None) -> dict:
         "walking_scenarios": list(WALKING),
         "config": {k: str(v) for k, v in dataclasses.asdict(base).items()},
         "params": {
-            k: np.asarray(v).round(4).tolist() for k, v in params._asdict().items() if k != "motion"
+            k: np.asarray(pp.get(params, path)).round(4).tolist() for k, path in PARAM_KEYS.items()
         },
         "seconds": 0,
         "complete": False,
@@ -422,8 +444,7 @@ def main(argv=None) -> dict:
         out.with_suffix(".md").write_text(markdown(res))
         figure(res, out.with_suffix(".png"))
         # Drop compiled runners between tables: a whole run compiles dozens of
-        # configs, and the full run died twice in LLVM ("Cannot allocate memory")
-        # at the likelihood_terms stage with every executable kept.
+        # configs, and with every executable kept LLVM runs out of memory.
         _runner.cache_clear()
         jax.clear_caches()
 
@@ -439,10 +460,10 @@ def main(argv=None) -> dict:
     # The same curve with the thesis's own model (8-tuple AR1, motion-guided, its
     # velocities undamped as in eqs. 3.14-3.17): the scenes are hard enough that N
     # matters for it (the default random walk needs fewer particles). The library's AR1
-    # and AR2 damp the size velocity (ColourParams.size_velocity_decay); the thesis's
+    # and AR2 damp the size velocity (MotionParams.size_velocity_decay); the thesis's
     # rows keep its undamped models, and Tables 3.4 and 3.5 report the damped AR1
     # beside them.
-    undamped = params._replace(size_velocity_decay=jnp.float32(1.0))
+    undamped = pp.replace(params, "motion.size_velocity_decay", jnp.float32(1.0))
     res["table_3_1_ar1"] = {}
     for n in (20, 60, 100, 160) if not args.quick else ns:
         cfg = dataclasses.replace(base, n_particles=n, model="ar1", hierarchical=True)
@@ -466,7 +487,7 @@ def main(argv=None) -> dict:
         res["table_3_4"][label] = mean
         print(f"model {label}: {mean:.1f} %", flush=True)
         save()
-    decay = float(params.size_velocity_decay)
+    decay = float(params.motion.size_velocity_decay)
     for model in SIZE_VELOCITY_MODELS:
         label = f"8-tuple {model.upper()}, size velocity damped ({decay:g})"
         res["table_3_4"][label] = mean_over(
@@ -492,8 +513,8 @@ def main(argv=None) -> dict:
 
     res["sigma_sweep"] = {}
     for sigma in (0.05, 0.1, 0.2, 0.5, 1.0):
-        p = params._replace(sigma=jnp.float32(sigma))
-        if abs(sigma - float(params.sigma)) < 1e-6:
+        p = pp.replace(params, "histogram.sigma", jnp.float32(sigma))
+        if abs(sigma - float(params.histogram.sigma)) < 1e-6:
             res["sigma_sweep"][str(sigma)] = res["table_3_1"]["100"]
             continue
         res["sigma_sweep"][str(sigma)] = mean_over(WALKING, seeds, keys, n100, p)[0]
@@ -506,10 +527,11 @@ def main(argv=None) -> dict:
     thesis_cfg = dataclasses.replace(
         hist100, parts=1, ring_margin=0.0, model="ar1", hierarchical=False
     )
+    no_contrast = pp.replace(params, "contrast.weight", jnp.float32(0.0))
     thesis_p = undamped._replace(
-        contrast_weight=jnp.float32(0.0),
-        sigma=jnp.float32(1.0),
-        tau=jnp.asarray(THESIS_TAU, jnp.float32),
+        contrast=undamped.contrast._replace(weight=jnp.float32(0.0)),
+        histogram=undamped.histogram._replace(sigma=jnp.float32(1.0)),
+        motion=undamped.motion._replace(tau=jnp.asarray(THESIS_TAU, jnp.float32)),
     )
     res["likelihood_ablation"] = {
         "thesis (1 histogram, sigma=1, thesis tau)": mean_over(
@@ -520,14 +542,14 @@ def main(argv=None) -> dict:
             seeds,
             keys,
             dataclasses.replace(hist100, parts=1, ring_margin=0.0),
-            params._replace(contrast_weight=jnp.float32(0.0)),
+            no_contrast,
         )[0],
         "2 parts, no contrast": mean_over(
             WALKING,
             seeds,
             keys,
             dataclasses.replace(hist100, ring_margin=0.0),
-            params._replace(contrast_weight=jnp.float32(0.0)),
+            no_contrast,
         )[0],
     }
     hist_mean, hist_per = mean_over(WALKING, seeds, keys, hist100, params)

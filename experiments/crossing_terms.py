@@ -1,12 +1,9 @@
 """OTB Crossing's box scale: the colour-layer terms with unseen colours counted as
 background or as neutral (``ColourConfig.unseen``).
 
-Every row starts from the histogram-only model (``ColourConfig.histogram_only()``,
-the library's default until 2026-11-27); the row labelled "default" is that model.
-Its motion-guided AR1 runs use no size hold (``MotionParams.size_hold = 0``, the
-library's proposal until 2026-11-27), as the committed table was made.
-This script's measurements led to today's default, the "layout+update" row with
-unseen colours neutral (``cpf_jax.colour``, "Why these defaults").
+Every row starts from the histogram-only model (``ColourConfig.histogram_only()``);
+the row labelled "default" is that model. Its motion-guided AR1 runs use no size hold
+(``MotionParams.size_hold = 0``), as the results table was made.
 
 On Crossing the tracked boxes are tighter than the annotation: pale pavement and
 crosswalk stripes inside the annotation's margin were seen neither in the first
@@ -24,7 +21,7 @@ Table 3.5's setting (8-tuple AR1, N = 50) with and without motion-guided
 sampling. About 25 minutes per row on a 2-core CPU.
 
 Run: ``python experiments/crossing_terms.py [--train "layout+update+mirror"]`` (the
-committed table: ``--train "layout+update+mirror"``).
+results table: ``--train "layout+update+mirror"``).
 Writes ``experiments/results/crossing_terms.json`` and ``.md`` (rows kept from an
 earlier run unless re-scored).
 """
@@ -43,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cpf_jax import params as pp
 from cpf_jax.colour import ColourConfig, default_colour_params
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -57,10 +55,10 @@ def variants() -> dict[str, tuple[ColourConfig, object]]:
     """Row label -> (config, params), each with unseen colours as background."""
     base = ColourConfig(n_particles=100).histogram_only()
     params = default_colour_params()
-    # The committed table's AR1 columns predate the size hold (cpf_jax.dynamics).
-    params = params._replace(motion=params.motion._replace(size_hold=jnp.float32(0.0)))
+    # The results table's AR1 columns run without the size hold (cpf_jax.dynamics).
+    params = pp.replace(params, "motion.size_hold", jnp.float32(0.0))
     layout = dataclasses.replace(base, layout=(12, 3))
-    update = params._replace(template_rate=jnp.float32(0.05))
+    update = pp.replace(params, "template.rate", jnp.float32(0.05))
     return {
         "default": (base, params),
         "template update": (dataclasses.replace(base, template_update=True), update),
@@ -76,7 +74,7 @@ def variants() -> dict[str, tuple[ColourConfig, object]]:
 
 def _rates(names, config: ColourConfig, params) -> dict[str, float]:
     """Mean training-scene success rate per scenario (each scenario's sequences are
-    dropped once scored: keeping every scene seed's frames at once ran out of 24 GB)."""
+    dropped once scored: every scene seed's frames at once do not fit in memory)."""
     out = {}
     for name in names:
         out[name] = float(np.mean(ct.success_rates(name, TRAIN_SEEDS, TRAIN_KEYS, config, params)))

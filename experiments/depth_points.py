@@ -51,16 +51,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cpf_jax import params as pp
+from cpf_jax.filter import Context, track
 from cpf_jax.kernels import depth as dk
 from cpf_jax.points import (
     BODY_POINT_DEPTH_OFFSET_MM,
     BODY_POINTS,
-    PointFilterConfig,
-    PointInputs,
+    PointConfig,
+    PointFrame,
     body_model,
     build_point_filter,
     default_point_params,
-    track_points,
 )
 from cpf_jax.synthetic import make_sequence
 
@@ -71,6 +72,17 @@ HANDS = (1, 2)
 # mm from the visible surface to the joint centre along the ray (half a hand's thickness;
 # the head and feet are not scored and get rough values)
 JOINT_OFFSET = BODY_POINT_DEPTH_OFFSET_MM
+#: The point parameters the results record (``setup.params``): JSON key -> parameter path.
+PARAM_KEYS = {
+    "pos_noise": "motion.pos_noise",
+    "vel_noise": "motion.vel_noise",
+    "velocity_decay": "motion.velocity_decay",
+    "spin_temperature": "weights.spin_temperature",
+    "geo_sigma": "weights.geo_sigma",
+    "depth_sigma": "weights.depth_sigma",
+    "recovery_spread": "motion.recovery_spread",
+    "joint_depth_offset": "estimate.joint_depth_offset",
+}
 # name: (generator overrides, use a background-subtraction foreground, filter settings)
 CASES = {
     "walk_towards": (dict(speed_mps=0.4), False, {}),
@@ -102,18 +114,21 @@ def temporal_foreground(seq) -> np.ndarray:
 
 
 def run(seq, method: str, keys: int, foreground=None, config_kw: dict | None = None):
-    cfg = PointFilterConfig(weighting=method, **(config_kw or {}))
+    cfg = PointConfig(weighting=method, **(config_kw or {}))
     filt = build_point_filter(cfg)
-    params = default_point_params()._replace(joint_depth_offset=jnp.asarray(JOINT_OFFSET))
+    params = pp.replace(
+        default_point_params(), "estimate.joint_depth_offset", jnp.asarray(JOINT_OFFSET)
+    )
     names = list(seq.joint_names)
     idx = [names.index(n) for n in TRACKED]
     start = jnp.asarray(seq.joints2d[0, idx] + 0.5)
-    inputs = PointInputs(
+    frames = PointFrame(
         jnp.asarray(seq.depth),
         jnp.asarray(seq.boxes),
         None if foreground is None else jnp.asarray(foreground),
     )
-    go = jax.jit(lambda k: track_points(filt, params, k, inputs, start)[1])
+    context = Context(points=start)
+    go = jax.jit(lambda k: track(filt, params, k, frames, frames.box[0], context)[1])
     out = []
     for k in range(keys):
         t0 = time.perf_counter()
@@ -179,7 +194,7 @@ def figure_errors(curves: dict, path: Path, title: str) -> None:
 
 
 def figure_frames(seq, infos: dict, path: Path, frames=(10, 60, 110, 160, 199)) -> None:
-    cfg = PointFilterConfig()
+    cfg = PointConfig()
     bmf = jax.jit(lambda d, b: body_model(cfg, d, b))
     names = list(seq.joint_names)
     idx = [names.index(n) for n in TRACKED]
@@ -308,10 +323,12 @@ def main() -> None:
         "joint_offset_mm": list(JOINT_OFFSET),
         "config": {
             k: (list(v) if isinstance(v, tuple) else v)
-            for k, v in PointFilterConfig().__dict__.items()
+            for k, v in PointConfig().__dict__.items()
             if k != "intrinsics"
         },
-        "params": {k: float(v) for k, v in default_point_params()._asdict().items()},
+        "params": {
+            k: float(pp.get(default_point_params(), path)) for k, path in PARAM_KEYS.items()
+        },
         "boxes": "ground truth (perfect layer 1)",
         "loadavg": [round(v, 2) for v in load],
     }

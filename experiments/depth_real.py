@@ -52,14 +52,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cpf_jax.filter import Context, track
 from cpf_jax.kernels import depth as dk
 from cpf_jax.points import (
-    PointFilterConfig,
-    PointInputs,
+    PointConfig,
+    PointFrame,
     body_model,
     build_point_filter,
     default_point_params,
-    track_points,
 )
 from cpf_jax.types import Intrinsics
 
@@ -147,7 +147,7 @@ def main() -> None:
         patch = frames[i][0][max(y, 0) : y + h, max(x, 0) : x + w]
         missing[i] = round(float((patch == 0).mean()), 3) if patch.size else 1.0
 
-    base = PointFilterConfig(window=WINDOW, intrinsics=KD, up=tuple(float(x) for x in up))
+    base = PointConfig(window=WINDOW, intrinsics=KD, up=tuple(float(x) for x in up))
     settings = {
         "thesis": dataclasses.replace(
             base,
@@ -188,12 +188,14 @@ def main() -> None:
     # Point tracking through 52-90 with the layer+fg settings.
     cfg = dataclasses.replace(settings["layer+fg"], weighting="combined")
     seq = list(range(52, 91))
-    inputs = PointInputs(
+    point_frames = PointFrame(
         jnp.asarray(np.stack([frames[i][0] for i in seq])),
         jnp.asarray(np.stack([boxes[i] for i in seq])),
         jnp.asarray(np.stack([fg[i] for i in seq])),
     )
-    bm0 = jax.device_get(models["layer+fg"](inputs.depth[0], inputs.box[0], inputs.foreground[0]))
+    bm0 = jax.device_get(
+        models["layer+fg"](point_frames.depth[0], point_frames.box[0], point_frames.foreground[0])
+    )
     g = np.where(np.asarray(bm0.body), np.asarray(bm0.geodesic[0]), -np.inf)
     g = np.where(np.isfinite(g), g, -np.inf)
     half = WINDOW[1] // 2
@@ -209,10 +211,9 @@ def main() -> None:
         ]
     )
     filt = build_point_filter(cfg)
+    context = Context(points=jnp.asarray(starts, jnp.float32))
     _, info = jax.jit(
-        lambda k: track_points(
-            filt, default_point_params(), k, inputs, jnp.asarray(starts, jnp.float32)
-        )
+        lambda k: track(filt, default_point_params(), k, point_frames, point_frames.box[0], context)
     )(jax.random.PRNGKey(0))
     info = jax.device_get(info)
     tracks = {52: starts}

@@ -1,9 +1,10 @@
 """Reproduce the RGB-D occlusion paper's Tables 1 and 2 (SPEC C2) on synthetic sequences,
 and score the four variants on the real IST RGB-D recording.
 
-Variants (rows of the paper's tables): ``rgb`` (colour layer only), ``rgbd`` (one
-cell: foreground ratio x colour x depth), ``grid`` (2 x 2 cells) and
-``grid-occlusion`` (2 x 2 cells with occlusion flags); ``cpf_jax.rgbd``.
+Variants (rows of the paper's tables): ``rgb`` (the colour layer, ``cpf_jax.colour``,
+with the 8-tuple AR1 model and motion-guided sampling), ``rgbd`` (one cell: foreground
+ratio x colour x depth), ``grid`` (2 x 2 cells) and ``grid-occlusion`` (2 x 2 cells with
+occlusion flags); the last three are ``cpf_jax.rgbd``.
 
 Scenarios (columns), synthetic (``cpf_jax.synthetic``), every sequence
 ``N_FRAMES`` frames long so that each variant is compiled once:
@@ -56,19 +57,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cpf_jax import charts
+from cpf_jax import charts, rgbd
+from cpf_jax.cascade import build_box_filter, default_box_params
+from cpf_jax.colour import ColourConfig
+from cpf_jax.filter import Context, track_boxes
 from cpf_jax.io import SyntheticSource
 from cpf_jax.kernels.background import foreground_mask, median_background
 from cpf_jax.metrics import run_success_curve, summarise
-from cpf_jax.rgbd import (
-    VARIANTS,
-    RGBDConfig,
-    build_rgbd_filter,
-    cell_foreground_ratios,
-    default_rgbd_params,
-    fit_beta,
-    track_boxes,
-)
+from cpf_jax.rgbd import RGBDConfig, cell_foreground_ratios, fit_beta
 from cpf_jax.synthetic import make_sequence
 from cpf_jax.types import Frame
 
@@ -80,6 +76,8 @@ IST_START = 51  # 0-based: frame 52, the first with a clear head and shoulders
 IST_BACKGROUND = (*range(0, 26), *range(102, 108))  # 0-based empty frames
 IST_SHEET_FRAMES = (51, 55, 59, 63, 67, 70, 74, 77, 81, 85)  # 0-based
 
+#: The tables' rows: the colour layer ("rgb") and the RGB-D filter's variants.
+VARIANTS = ("rgb", *rgbd.VARIANTS)
 SCENARIOS = {
     "no_occlusion": ("walk_across_slow",),
     "occlusion": ("occlusion_box", "occlusion_person"),
@@ -92,8 +90,7 @@ EVAL_SEEDS = (0, 1)
 N_KEYS = 3
 N_FRAMES = 150
 N_PARTICLES = 150
-# 16 filter keys: single IST runs are chaotic (one lost frame decides the rest), and
-# over 4 keys the mean AUC moved by 5-10 points with the keys drawn.
+# 16 filter keys: single IST runs are chaotic (one lost frame decides the rest).
 IST_KEYS = 16
 # The walker of these stays in the middle of the view (walks away and back): the median
 # of its frames would hold the walker, so the background is the empty room (as a real
@@ -131,22 +128,29 @@ def _sequence(name: str, seed: int, n_frames: int | None):
 
 
 @functools.cache
-def _runner(config: RGBDConfig):
+def _runner(config: ColourConfig | RGBDConfig):
     """One jitted runner per static config: (keys [K], frames, box, bg) -> boxes, lost.
 
     Frames, box and background are arguments (not constants), so every sequence of the
-    same shape reuses the compiled program; filter keys are vmapped.
+    same shape reuses the compiled program; filter keys are vmapped. The colour layer
+    ignores the background.
     """
-    filt = build_rgbd_filter(config)
-    params = default_rgbd_params(config)
+    filt = build_box_filter(config)
+    params = default_box_params(config)
 
     def run(keys, frames, box, bg):
-        return jax.vmap(lambda k: track_boxes(filt, params, k, frames, box, bg))(keys)
+        context = Context(background=bg)
+        return jax.vmap(lambda k: track_boxes(filt, params, k, frames, box, context))(keys)
 
     return jax.jit(run)
 
 
 def _config(variant: str, window_box: tuple[float, float], frame_hw, n_particles: int):
+    """The box filter of a row: ``"rgb"`` is the colour layer with the RGB-D filter's
+    motion model (8-tuple AR1, motion-guided) and window growth."""
+    if variant == "rgb":
+        config = ColourConfig(n_particles=n_particles, model="ar1", hierarchical=True)
+        return config.with_window(window_box, frame_hw, growth=1.5)
     return RGBDConfig(variant=variant, n_particles=n_particles).with_window(window_box, frame_hw)
 
 

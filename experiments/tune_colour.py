@@ -1,18 +1,18 @@
 """Gradient tuning of the colour layer's likelihood with optax (SPEC C7), held-out check.
 
-The study runs on the histogram-only model (``ColourConfig.histogram_only()``, the
-library's default until 2026-11-27; "defaults" below are its parameters).
+The study runs on the histogram-only model (``ColourConfig.histogram_only()``) with the
+library's default parameters ("defaults" below).
 
-Tunes ``sigma``, ``contrast_weight`` and ``aspect_sigma`` (``cpf_jax.tuning.tune``:
-DIoU loss, Adam on the unconstrained values, the Scibior-Wood gradient through
-resampling) on the *training* scenes -- the six walking scenarios with scene seeds
-100-101, the first 60 frames each, one fresh filter seed per sequence and step -- from
-two starting points:
+Tunes ``histogram.sigma``, ``contrast.weight`` and ``aspect.sigma``
+(``cpf_jax.tuning.tune``: DIoU loss, Adam on the unconstrained values, the Scibior-Wood
+gradient through resampling) on the *training* scenes -- the six walking scenarios with
+scene seeds 100-101, the first 60 frames each, one fresh filter seed per sequence and
+step -- from two starting points:
 
 * ``thesis``: close to the thesis's likelihood: its hand-set sigma = 1 (nearly flat,
   see the colour module's docstring) and a weak colour-contrast term (weight 5 instead
   of 28; the thesis has none);
-* ``defaults``: the library's hand-set defaults (sigma 0.15, found by grid search).
+* ``defaults``: the library's hand-set defaults (sigma 0.15).
 
 Early stopping: every 5 steps the loss on validation scenes (the same scenarios with
 scene seeds 102-103, one fixed filter seed) is computed, and the result is the
@@ -22,7 +22,8 @@ Each result is checked on held-out data: the walking scenarios with the evaluati
 scene seeds of ``colour_tables.py`` (0, 1, 2; full length), 3 filter seeds, N = 100,
 and OTB Crossing (5 seeds) when ``../shared/data`` is there. Writes
 ``experiments/results/tune_colour.json`` and ``tune_colour.md`` (the loss per step,
-the values before and after, held-out success rates).
+the values before and after, held-out success rates; the parameters under their
+``KEYS``).
 
     python experiments/tune_colour.py [--steps 40] [--lr 0.2] [--quick]
 """
@@ -43,10 +44,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import colour_tables as ct  # noqa: E402
 
 from cpf_jax import charts, tuning  # noqa: E402
-from cpf_jax.colour import PARAM_CONSTRAINTS, ColourConfig, default_colour_params  # noqa: E402
+from cpf_jax import params as pp  # noqa: E402
+from cpf_jax.colour import (  # noqa: E402
+    COLOUR_PROPS,
+    ColourConfig,
+    build_colour_filter,
+    default_colour_params,
+)
 from cpf_jax.synthetic import make_sequence  # noqa: E402
 
-NAMES = ("sigma", "contrast_weight", "aspect_sigma")
+NAMES = ("histogram.sigma", "contrast.weight", "aspect.sigma")
+#: Each tuned parameter's key in the results (JSON, Markdown).
+KEYS = {
+    "histogram.sigma": "sigma",
+    "contrast.weight": "contrast_weight",
+    "aspect.sigma": "aspect_sigma",
+}
 TRAIN_SEEDS = (100, 101)
 VALIDATION_SEEDS = (102, 103)  # early stopping: the parameters with the lowest loss on these
 TRAIN_FRAMES = 60
@@ -63,7 +76,7 @@ def held_out(config: ColourConfig, params, seeds, keys: int) -> dict:
 
 
 def _values(params) -> dict:
-    return {n: float(getattr(params, n)) for n in NAMES}
+    return {KEYS[n]: float(pp.get(params, n)) for n in NAMES}
 
 
 def main() -> None:
@@ -87,22 +100,23 @@ def main() -> None:
     validation = tuning.stack_sequences(
         [make_sequence(n, seed=s, n_frames=TRAIN_FRAMES) for n in names for s in VALIDATION_SEEDS]
     )
-    # The histogram-only model (ColourConfig.histogram_only; the default until
-    # 2026-11-27), on which the committed study was made: the tuned parameters are its
-    # likelihood's. Tuning the default's layout weight is not part of this study.
+    # The histogram-only model (ColourConfig.histogram_only): the tuned parameters are
+    # its likelihood's. Tuning the default's layout weight is not part of this study.
     config = ct._window_config(ColourConfig(n_particles=100).histogram_only(), ct.WALKING[0])
-    run = tuning.colour_runner(config)
-    loss = jax.jit(tuning.make_loss(run, PARAM_CONSTRAINTS))
+    run = tuning.runner(build_colour_filter(config))
+    loss = jax.jit(tuning.make_loss(run, COLOUR_PROPS))
     fixed_key = jax.random.PRNGKey(12345)  # one key for before / after training losses
 
+    defaults = default_colour_params()
     starts = {
-        "thesis": default_colour_params()._replace(
-            sigma=jnp.float32(1.0), contrast_weight=jnp.float32(5.0)
+        "thesis": defaults._replace(
+            histogram=defaults.histogram._replace(sigma=jnp.float32(1.0)),
+            contrast=defaults.contrast._replace(weight=jnp.float32(5.0)),
         ),
-        "defaults": default_colour_params(),
+        "defaults": defaults,
     }
     res = {
-        "names": list(NAMES),
+        "names": [KEYS[n] for n in NAMES],
         "train": {
             "scenes": list(names),
             "seeds": list(TRAIN_SEEDS),
@@ -120,7 +134,7 @@ def main() -> None:
         result = tuning.tune(
             run,
             p0,
-            PARAM_CONSTRAINTS,
+            COLOUR_PROPS,
             data,
             NAMES,
             optimizer=optax.adam(args.lr),
@@ -133,7 +147,7 @@ def main() -> None:
         seconds = time.perf_counter() - t0
 
         def train_loss(p):
-            free = tuning.to_unconstrained(p, PARAM_CONSTRAINTS, NAMES)
+            free = tuning.unconstrained(p, COLOUR_PROPS, NAMES)
             return float(loss(free, p, fixed_key, data))
 
         run_res = {
@@ -144,7 +158,7 @@ def main() -> None:
             "tune_seconds": seconds,
             "skipped_steps": sum(e["skipped"] for e in result.history),
             "history": [
-                {k: e[k] for k in ("step", "loss", "validation", *NAMES) if k in e}
+                {KEYS.get(k, k): e[k] for k in ("step", "loss", "validation", *NAMES) if k in e}
                 for e in result.history
             ],
         }

@@ -1,6 +1,6 @@
 """Gradient tuning of the RGB-D grid-occlusion filter with optax (SPEC C7), held-out check.
 
-Tunes parameters of ``cpf_jax.rgbd`` (``cpf_jax.tuning.tune`` with ``rgbd_runner``:
+Tunes parameters of ``cpf_jax.rgbd`` (``cpf_jax.tuning.tune`` with ``tuning.runner``:
 DIoU loss on the weighted-mean box, Adam on the unconstrained values, the Scibior-Wood
 gradient through resampling) on synthetic *training* scenes -- occlusion_box,
 occlusion_person, appearance_change and walk_across_medium with scene seeds 100-101,
@@ -8,10 +8,10 @@ the first 90 frames each, one fresh filter seed per sequence and step -- from th
 hand-set defaults, in two settings:
 
 * ``likelihood``: the widths and floors of the cell terms and the Beta weight
-  (``sigma_rgb``, ``sigma_depth``, ``colour_floor``, ``depth_floor``, ``beta_weight``);
-* ``likelihood+flags``: ``sigma_rgb``, ``sigma_depth``, ``beta_weight`` and the
-  occlusion model (eq. 1's constant ``log_occluded``, the flag transitions
-  ``p_occlude`` / ``p_reveal``).
+  (``colour.sigma``, ``depth.sigma``, ``colour.floor``, ``depth.floor``, ``beta.weight``);
+* ``likelihood+flags``: ``colour.sigma``, ``depth.sigma``, ``beta.weight`` and the
+  occlusion model (eq. 1's constant ``occlusion.log_occluded``, the flag transitions
+  ``occlusion.p_occlude`` / ``occlusion.p_reveal``).
 
 Early stopping: every 5 steps the loss on validation scenes (the same scenarios, scene
 seeds 102-103, one fixed filter seed); the result is the parameters with the lowest
@@ -19,7 +19,8 @@ validation loss (the start included). Each result is checked on held-out data: t
 synthetic scenarios of ``occlusion_tables.py`` (its evaluation seeds, keys, length and
 N = 150; grid-occlusion MOTA and success rate) and the real IST recording (8 filter
 keys; AUC as in the occlusion tables) when ``../shared/data`` is there. Writes
-``experiments/results/tune_rgbd.json`` and ``tune_rgbd.md``.
+``experiments/results/tune_rgbd.json`` and ``tune_rgbd.md`` (the parameters under
+their ``KEYS``).
 
     python experiments/tune_rgbd.py [--steps 25] [--lr 0.1] [--quick]
 """
@@ -42,25 +43,33 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import occlusion_tables as ot  # noqa: E402
 import tune_colour  # noqa: E402
 
+from cpf_jax import params as pp  # noqa: E402
 from cpf_jax import tuning  # noqa: E402
-from cpf_jax.rgbd import (  # noqa: E402
-    PARAM_CONSTRAINTS,
-    build_rgbd_filter,
-    default_rgbd_params,
-    track_boxes,
-)
+from cpf_jax.filter import Context, track_boxes  # noqa: E402
+from cpf_jax.rgbd import build_rgbd_filter, default_rgbd_params, rgbd_props  # noqa: E402
 from cpf_jax.types import Frame  # noqa: E402
 
 SETTINGS = {
-    "likelihood": ("sigma_rgb", "sigma_depth", "colour_floor", "depth_floor", "beta_weight"),
+    "likelihood": ("colour.sigma", "depth.sigma", "colour.floor", "depth.floor", "beta.weight"),
     "likelihood+flags": (
-        "sigma_rgb",
-        "sigma_depth",
-        "beta_weight",
-        "log_occluded",
-        "p_occlude",
-        "p_reveal",
+        "colour.sigma",
+        "depth.sigma",
+        "beta.weight",
+        "occlusion.log_occluded",
+        "occlusion.p_occlude",
+        "occlusion.p_reveal",
     ),
+}
+#: Each tuned parameter's key in the results (JSON, Markdown).
+KEYS = {
+    "colour.sigma": "sigma_rgb",
+    "depth.sigma": "sigma_depth",
+    "colour.floor": "colour_floor",
+    "depth.floor": "depth_floor",
+    "beta.weight": "beta_weight",
+    "occlusion.log_occluded": "log_occluded",
+    "occlusion.p_occlude": "p_occlude",
+    "occlusion.p_reveal": "p_reveal",
 }
 TRAIN_SCENES = ("occlusion_box", "occlusion_person", "appearance_change", "walk_across_medium")
 TRAIN_SEEDS = (100, 101)
@@ -85,7 +94,8 @@ def _runner(config):
     filt = build_rgbd_filter(config)
 
     def run(params, keys, frames, box, bg):
-        return jax.vmap(lambda k: track_boxes(filt, params, k, frames, box, bg))(keys)
+        context = Context(background=bg)
+        return jax.vmap(lambda k: track_boxes(filt, params, k, frames, box, context))(keys)
 
     return jax.jit(run)
 
@@ -154,7 +164,7 @@ def ist_held_out(params, quick: bool) -> dict | None:
 
 
 def _values(params, names) -> dict:
-    return {n: round(float(np.mean(np.asarray(getattr(params, n)))), 4) for n in names}
+    return {KEYS[n]: round(float(np.mean(np.asarray(pp.get(params, n)))), 4) for n in names}
 
 
 def main() -> None:
@@ -176,8 +186,9 @@ def main() -> None:
     w = max(float(s.boxes[:, 2].max()) for s in train_seqs + val_seqs)
     h = max(float(s.boxes[:, 3].max()) for s in train_seqs + val_seqs)
     config = ot._config("grid-occlusion", (w, h), train_seqs[0].colour.shape[1:3], ot.N_PARTICLES)
-    run = tuning.rgbd_runner(config)
+    run = tuning.runner(build_rgbd_filter(config))
     p0 = default_rgbd_params(config)
+    props = rgbd_props(config)
     res = {
         "train": {
             "scenes": list(scenes),
@@ -201,7 +212,7 @@ def main() -> None:
         result = tuning.tune(
             run,
             p0,
-            PARAM_CONSTRAINTS,
+            props,
             data,
             names,
             optimizer=optax.adam(args.lr),
@@ -213,7 +224,7 @@ def main() -> None:
         )
         validated = [e for e in result.history if "validation" in e]
         res["runs"][label] = {
-            "names": list(names),
+            "names": [KEYS[n] for n in names],
             "before": _values(p0, names),
             "after": _values(result.params, names),
             "validation_start": result.start_validation,
@@ -223,7 +234,11 @@ def main() -> None:
             "tune_seconds": round(time.perf_counter() - t0, 1),
             "skipped_steps": sum(e["skipped"] for e in result.history),
             "history": [
-                {k: (float(np.mean(e[k])) if k in names else e[k]) for k in e if k != "skipped"}
+                {
+                    KEYS.get(k, k): (float(np.mean(e[k])) if k in names else e[k])
+                    for k in e
+                    if k != "skipped"
+                }
                 for e in result.history
             ],
             "held_out_after": {

@@ -28,10 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cpf_jax import params as pp
 from cpf_jax.cascade import CascadeConfig, build_cascade, default_cascade_params, find_body_points
+from cpf_jax.filter import Context, track
 from cpf_jax.kernels.background import median_background
 from cpf_jax.metrics import format_summary, summarise
-from cpf_jax.points import AUTO_POINTS, BODY_POINT_DEPTH_OFFSET_MM, PointFilterConfig
+from cpf_jax.points import AUTO_POINTS, BODY_POINT_DEPTH_OFFSET_MM, PointConfig
 from cpf_jax.rgbd import RGBDConfig
 from cpf_jax.synthetic import make_sequence
 from cpf_jax.types import Frame
@@ -59,7 +61,7 @@ background = median_background(
 box_config = RGBDConfig(variant="grid-occlusion", n_particles=150).with_window(
     tuple(float(v) for v in seq.boxes[0, 2:]), seq.colour.shape[1:3]
 )
-point_config = PointFilterConfig(
+point_config = PointConfig(
     n_particles=64, seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05
 )
 config = CascadeConfig(box=box_config, points=point_config, foreground=True)
@@ -79,33 +81,26 @@ for name, (x, y) in zip(AUTO_POINTS, np.asarray(points0), strict=True):
 print("reach of hands and feet (mm):", np.asarray(reach).round(0))
 
 # %% [markdown]
-# Track both layers over the sequence: one `lax.scan` of the jitted step. The tracked
-# points are surface points; `joint_depth_offset` pushes each 3D estimate to the joint
-# behind the surface (head 80 mm, hands 20, feet 40).
+# Track both layers over the sequence: `track` runs the step as one `lax.scan`, with the
+# background and the points to track in its `Context`. The tracked points are surface
+# points; `estimate.joint_depth_offset` pushes each 3D estimate to the joint behind the
+# surface (head 80 mm, hands 20, feet 40).
 
 # %%
 filt = build_cascade(config)
 params = default_cascade_params(config)
 offset = jnp.asarray(BODY_POINT_DEPTH_OFFSET_MM, jnp.float32)
-params = params._replace(points=params.points._replace(joint_depth_offset=offset))
+params = pp.replace(params, "points.estimate.joint_depth_offset", offset)
 
 
 def run(key, frames, box, points, background):
     # Arrays come in as arguments, not closed over: XLA would fold them as constants.
-    k0, k1 = jax.random.split(key)
-    first = Frame(frames.colour[0], frames.depth[0])
-    state = filt.init(params, k0, first, box, points, background)
-
-    def body(state, inputs):
-        k, colour, depth = inputs
-        return filt.step(params, k, state, Frame(colour, depth))
-
-    keys = jax.random.split(k1, frames.colour.shape[0] - 1)
-    return jax.lax.scan(body, state, (keys, frames.colour[1:], frames.depth[1:]))[1]
+    context = Context(background=background, points=points)
+    return track(filt, params, key, frames, box, context)[1]
 
 
 info = jax.jit(run)(jax.random.PRNGKey(0), frames, jnp.asarray(seq.boxes[0]), points0, background)
-summary = summarise(np.asarray(info.box.estimate), seq.boxes[1:], seq.visible[1:])
+summary = summarise(np.asarray(info.estimate), seq.boxes[1:], seq.visible[1:])
 print(format_summary({"walk_towards (layer 1)": summary}))
 
 # %% [markdown]

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cpf_jax import ColourConfig, Frame, build_colour_filter, default_colour_params, track_boxes
+from cpf_jax import params as pp
 from cpf_jax.metrics import format_summary, summarise
 from cpf_jax.synthetic import make_sequence
 
@@ -42,7 +43,9 @@ frames = Frame(jnp.asarray(seq.colour), jnp.asarray(seq.depth))
 
 # %% [markdown]
 # The static configuration (particle count, bins, motion model, histogram window) builds a
-# filter; the continuous parameters are a separate pytree that gradients or `vmap` can touch.
+# filter; the continuous parameters are a separate pytree that gradients or `vmap` can touch,
+# nested by term (`params.histogram.sigma`, `params.motion.tau`). `track_boxes` runs any box
+# filter over the frames and returns `(boxes [T, 4], lost [T])`.
 
 # %%
 config = ColourConfig(n_particles=100).with_window(seq.boxes[0, 2:], seq.colour.shape[1:3])
@@ -50,12 +53,14 @@ filt = build_colour_filter(config)
 params = default_colour_params()
 # Arrays go in as arguments: closed over, they would be baked into the program as constants.
 run = jax.jit(lambda key, frames, box: track_boxes(filt, params, key, frames, box))
-boxes = np.asarray(run(jax.random.PRNGKey(0), frames, seq.boxes[0]))
+boxes, _ = run(jax.random.PRNGKey(0), frames, seq.boxes[0])
+boxes = np.asarray(boxes)
 summary = summarise(boxes, seq.boxes, seq.visible)
 print(format_summary({"walk_across_medium": summary}))
 
 # %% [markdown]
-# Four seeds at once with `vmap`, and a sweep over the likelihood width sigma: one jitted
+# Four seeds at once with `vmap`, and a sweep over the likelihood width sigma (the parameter
+# at the path `"histogram.sigma"`, replaced with `cpf_jax.params.replace`): one jitted
 # program over a batch of (key, sigma) pairs serves both, so it compiles once. (The histogram
 # kernel's exactness fallback stays a real branch under `vmap`: the whole batch takes the fast
 # path when every member fits its window; `kernels.histogram.batch_all`.)
@@ -64,13 +69,13 @@ print(format_summary({"walk_across_medium": summary}))
 sweep = jax.jit(
     jax.vmap(
         lambda key, sigma, frames, box: track_boxes(
-            filt, params._replace(sigma=sigma), key, frames, box
-        ),
+            filt, pp.replace(params, "histogram.sigma", sigma), key, frames, box
+        )[0],
         in_axes=(0, 0, None, None),
     )
 )
 keys = jax.random.split(jax.random.PRNGKey(1), 4)
-by_seed = sweep(keys, jnp.full(4, params.sigma), frames, seq.boxes[0])
+by_seed = sweep(keys, jnp.full(4, params.histogram.sigma), frames, seq.boxes[0])
 print(
     "success per seed:",
     [round(summarise(np.asarray(b), seq.boxes)["success_rate"], 1) for b in by_seed],

@@ -35,7 +35,7 @@ from cpf_jax import (
     track_boxes,
     tuning,
 )
-from cpf_jax.colour import PARAM_CONSTRAINTS
+from cpf_jax.colour import COLOUR_PROPS
 from cpf_jax.metrics import summarise
 from cpf_jax.synthetic import make_sequence
 
@@ -58,26 +58,31 @@ largest = (
     max(float(s.boxes[:, 3].max()) for s in train),
 )
 config = ColourConfig(n_particles=100).with_window(largest, train[0].colour.shape[1:3])
-start = default_colour_params()._replace(sigma=jnp.float32(1.0), contrast_weight=jnp.float32(5.0))
+defaults = default_colour_params()
+start = defaults._replace(
+    histogram=defaults.histogram._replace(sigma=jnp.float32(1.0)),
+    contrast=defaults.contrast._replace(weight=jnp.float32(5.0)),
+)
 
 # %% [markdown]
-# Tune sigma and the contrast weight. Each step draws fresh filter seeds, so the loss per
-# step is noisy; the optimiser works on unconstrained values (softplus for both).
+# Tune sigma and the contrast weight, named by their paths in the parameter tree. Each step
+# draws fresh filter seeds, so the loss per step is noisy; the optimiser works on
+# unconstrained values (`COLOUR_PROPS` gives each parameter's bijector: softplus for both).
 
 # %%
 result = tuning.tune(
-    tuning.colour_runner(config),
+    tuning.runner(build_colour_filter(config)),
     start,
-    PARAM_CONSTRAINTS,
+    COLOUR_PROPS,
     data,
-    names=("sigma", "contrast_weight"),
+    names=("histogram.sigma", "contrast.weight"),
     optimizer=optax.adam(0.2),
     steps=STEPS,
 )
 for e in result.history:
     print(
-        f"step {e['step']:2d} loss {e['loss']:.3f} sigma {e['sigma']:.3f} "
-        f"contrast_weight {e['contrast_weight']:.2f}"
+        f"step {e['step']:2d} loss {e['loss']:.3f} sigma {e['histogram.sigma']:.3f} "
+        f"contrast weight {e['contrast.weight']:.2f}"
     )
 
 # %% [markdown]
@@ -89,7 +94,7 @@ frames = Frame(jnp.asarray(test.colour), jnp.asarray(test.depth))
 filt = build_colour_filter(config)
 keys = jax.random.split(jax.random.PRNGKey(7), 3)
 # One jitted run, parameters and key as arguments: one compile for both parameter sets.
-run = jax.jit(lambda p, k: track_boxes(filt, p, k, frames, test.boxes[0]))
+run = jax.jit(lambda p, k: track_boxes(filt, p, k, frames, test.boxes[0])[0])
 for label, p in (("hand-set", start), ("tuned", result.params)):
     rates = [summarise(np.asarray(run(p, k)), test.boxes)["success_rate"] for k in keys]
     print(f"{label}: held-out success rate {np.mean(rates):.1f} % over {len(keys)} seeds")
