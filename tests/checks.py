@@ -1,5 +1,6 @@
 """One test body, three ways (dm_pix's ``_test_fn``): a kernel against its reference plainly,
-under ``jax.jit`` and under ``jax.vmap``."""
+under ``jax.jit`` and under ``jax.vmap`` (vmapped under jit, as every filter runs its
+kernels: an eager vmap dispatches op by op and costs more than the compile)."""
 
 from __future__ import annotations
 
@@ -61,7 +62,7 @@ def check_kernel(
         elif variant == "vmap":
             items = list(batch) if batch is not None else [args, args]
             stacked = jax.tree_util.tree_map(lambda *x: np.stack(x), *[tuple(b) for b in items])
-            out = jax.vmap(kernel)(*stacked)
+            out = jax.jit(jax.vmap(kernel))(*stacked)
             for j, item in enumerate(items):
                 got = jax.tree_util.tree_map(lambda x, j=j: x[j], out)
                 assert_trees_close(

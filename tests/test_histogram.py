@@ -664,15 +664,20 @@ def test_integral_image_equals_numpy_for_every_row_length(n):
     # does not divide their length: every length, exact for integers (uint16 wraps modulo
     # 2^16, as the uint16 tables rely on), the reference loops ("loop") bit for bit, plain,
     # under jit and vmap; float sums to rounding.
+    # The padding depends on the length alone, so two lengths (a partial and a multi-block
+    # row) run all three ways and the others under jit.
+    variants = ("plain", "jit", "vmap") if n in (9, 289) else ("jit",)
     rng = np.random.default_rng(n)
     wraps = [rng.integers(0, 60_000, (5, n, 3)).astype(np.uint16) for _ in range(2)]
-    check_kernel(H.integral_image, _summed_area, (wraps[0],), batch=[(v,) for v in wraps], **EXACT)
+    batch = [(v,) for v in wraps]
+    check_kernel(H.integral_image, _summed_area, batch[0], batch=batch, variants=variants, **EXACT)
     ints = [rng.integers(-1000, 1000, (4, n, 2)).astype(np.int32) for _ in range(2)]
-    check_kernel(H.integral_image, _summed_area, (ints[0],), batch=[(v,) for v in ints], **EXACT)
+    batch = [(v,) for v in ints]
+    check_kernel(H.integral_image, _summed_area, batch[0], batch=batch, variants=variants, **EXACT)
     loop = functools.partial(H.integral_image, method="loop")
     check_kernel(loop, _summed_area, (ints[1],), variants=("jit",), **EXACT)
     floats = rng.random((6, n, 4)).astype(np.float32)
-    check_kernel(H.integral_image, _summed_area, (floats,), rtol=1e-5, atol=1e-6)
+    check_kernel(H.integral_image, _summed_area, (floats,), variants=variants, rtol=1e-5, atol=1e-6)
     with pytest.raises(ValueError, match="method"):
         H.integral_image(ints[0], method="scan")
 
@@ -721,7 +726,7 @@ def test_integral_image_and_rect_sums_match_numpy():
 def test_rect_sums_in_chunks_equal_the_numpy_sums(n):
     # ``chunk``: gathers in sequential blocks of 8 rects (one block, exact blocks, a
     # partial last block) whose inputs are handed on through the loop; the same sums
-    # for a [N, 2] rect axis too; plainly, under jit and vmap.
+    # for a [N, 2] rect axis too; the partial block all three ways, the others under jit.
     rng = np.random.default_rng(n)
     values = rng.integers(-4096, 4097, (37, 53, 3)).astype(np.int32)
     x0, y0 = rng.integers(-15, 60, n), rng.integers(-10, 45, n)
@@ -732,7 +737,9 @@ def test_rect_sums_in_chunks_equal_the_numpy_sums(n):
         return H.rect_sums(H.integral_image(v), r, 2, 8)
 
     batch = [(values, rects), (-values, rects[::-1].copy())]
-    check_kernel(sums, lambda v, r: _np_rect_sums(v, r, 2), batch[0], batch=batch, **EXACT)
+    variants = ("plain", "jit", "vmap") if n == 21 else ("jit",)
+    reference = functools.partial(_np_rect_sums, channels=2)
+    check_kernel(sums, reference, batch[0], batch=batch, variants=variants, **EXACT)
     cols = tuple(jnp.asarray(rects[:, k].reshape(-1, 1).repeat(2, 1)) for k in range(4))
     paired = jax.jit(sums)(values, cols)
     np.testing.assert_array_equal(
@@ -746,6 +753,8 @@ def test_chunked_counts_and_ncc_equal_the_references(n, frames):
     # rect_reduce slices each block's inputs in place, grid_ncc hands them on through the
     # loop (cut along the minor box axis); plainly, under jit and vmap (the second rect
     # set leaves the window: the batch takes the exact fallback).
+    # The partial last block (21) runs all three ways, the other block counts under jit.
+    variants = ("plain", "jit", "vmap") if n == 21 else ("jit",)
     imgs, _, _ = frames
     _, cloud = _cloud_rects(n, n=n)
     cloud_sets = [cloud, np.concatenate([cloud[: n // 2], EDGE_RECTS, cloud])[:n]]
@@ -754,6 +763,7 @@ def test_chunked_counts_and_ncc_equal_the_references(n, frames):
         lambda img, r: _ref_hists(_hsv(np.asarray(img)), r),
         (imgs[0], cloud_sets[0]),
         batch=list(zip(imgs[:2], cloud_sets, strict=True)),
+        variants=variants,
         **EXACT,
     )
 
@@ -778,7 +788,7 @@ def test_chunked_counts_and_ncc_equal_the_references(n, frames):
         return np.asarray(out)
 
     batch = [(values, boxes), (-values, boxes)]
-    check_kernel(ncc, ncc_reference, batch[0], batch=batch, rtol=1e-4, atol=1e-4)
+    check_kernel(ncc, ncc_reference, batch[0], batch=batch, variants=variants, rtol=1e-4, atol=1e-4)
 
 
 def _grid_reference(values, box, rows, cols):
