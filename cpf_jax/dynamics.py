@@ -68,6 +68,7 @@ __all__ = [
     "MOTION",
     "guide_frame",
     "size_scale",
+    "height_scale",
     "propagate",
 ]
 
@@ -202,6 +203,13 @@ def _guided_noise(key: Array, particles: Array, noise: Array, motion: MotionPara
     guided = guided.at[:, 6].multiply(r).at[:, 7].multiply(r)
     is_guided = uniform(key, (n,)) < motion.guided_fraction
     return jnp.where(is_guided[:, None], guided, noise), is_guided, r
+
+
+def height_scale(particles: Array, tau_height: float | None) -> Array | None:
+    """``[N]`` noise multipliers ``h / tau_height`` (``motion.tau`` holds for a box of
+    ``tau_height`` px, so larger boxes move and grow proportionally more), or None for
+    unscaled noise."""
+    return None if tau_height is None else particles[:, 5] / tau_height
 
 
 def propagate(

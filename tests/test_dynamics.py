@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from checks import check_kernel
 
-from cpf_jax.dynamics import MODELS, MOTION, RNGS, THESIS_TAU, propagate
+from cpf_jax.dynamics import MODELS, MOTION, RNGS, THESIS_TAU, height_scale, propagate
 from cpf_jax.kernels import fastrand
 from cpf_jax.params import values
 
@@ -335,3 +335,14 @@ def test_size_hold_damps_the_size_velocity_of_guided_particles_moving_across():
     for v in ((0.0, 0.0), (0.0, 8.0)):
         s = state.at[:, 2].set(v[0]).at[:, 3].set(v[1])
         np.testing.assert_allclose(np.asarray(run(jnp.float32(1.0), s)), np.asarray(run(0.0, s)))
+
+
+def test_height_scale_is_the_height_over_the_reference_height():
+    particles = jnp.concatenate([STATE, STATE.at[:, 5].set(300.0)])
+    np.testing.assert_allclose(np.asarray(height_scale(particles, 200.0)), [0.45, 1.5])
+    assert height_scale(particles, None) is None
+    # The same multipliers as the noise it scales: propagate with it equals tau scaled.
+    tau = np.asarray(THESIS_TAU)
+    scaled = propagate(KEY, STATE, PREV, motion(tau), model="ar1", scale=height_scale(STATE, 45.0))
+    plain = propagate(KEY, STATE, PREV, motion(2.0 * tau), model="ar1")
+    np.testing.assert_allclose(np.asarray(scaled), np.asarray(plain), rtol=1e-5)

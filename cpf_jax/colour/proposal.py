@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from cpf_jax.colour.config import ColourConfig
-from cpf_jax.dynamics import MotionParams, propagate
+from cpf_jax.dynamics import MotionParams, height_scale, propagate
 
 __all__ = ["clamp", "contain", "recovery_draw", "propose"]
 
@@ -98,7 +98,6 @@ def propose(
     """
     k_prop, k_rec = keys
     cloud = state.cloud
-    scale = None if config.tau_height is None else cloud.particles[:, 5] / config.tau_height
     particles = propagate(
         k_prop,
         cloud.particles,
@@ -106,7 +105,7 @@ def propose(
         motion,
         model=config.model,
         hierarchical=config.hierarchical,
-        scale=scale,
+        scale=height_scale(cloud.particles, config.tau_height),
         rng=config.rng,
         guide=state.guide.velocity if config.hierarchical else None,
     )

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from cpf_jax.dynamics import MotionParams, guide_frame, propagate
+from cpf_jax.dynamics import MotionParams, guide_frame, height_scale, propagate
 from cpf_jax.kernels.cells import coarse_counts, map_cell_of, window_sums
 from cpf_jax.rgbd.config import RGBDConfig
 from cpf_jax.rgbd.depth import DepthTemplate, mean_known_depth, target_gate, target_like
@@ -493,7 +493,7 @@ def propose(
     k_prop, k_spread, k_det, k_rec = keys
     height, width = depth.shape
     cloud = state.cloud
-    scale = None if config.tau_height is None else cloud.particles[:, 5] / config.tau_height
+    scale = height_scale(cloud.particles, config.tau_height)
     particles = propagate(
         k_prop,
         cloud.particles,
