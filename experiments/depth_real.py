@@ -42,6 +42,7 @@ map, tracked points).
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import os
@@ -130,6 +131,9 @@ def floor_up(background: np.ndarray, seed: int = 0) -> np.ndarray:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
+    if not ROOT.is_dir():
+        raise SystemExit(f"depth_real: skipped, the recording is not at {ROOT}")
     RESULTS.mkdir(parents=True, exist_ok=True)
     load_avg = os.getloadavg()
     gt = np.loadtxt(ROOT / "groundtruth_rect.txt", delimiter=",")
