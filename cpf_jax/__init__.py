@@ -10,7 +10,8 @@ their constraints: ``cpf_jax.params``; kernels: ``cpf_jax.kernels``; frame sourc
 sequences: ``cpf_jax.synthetic``; batch runs: ``cpf_jax.batch``; gradient tuning:
 ``cpf_jax.tuning``.
 
-Importing the package changes no global JAX configuration.
+Importing the package changes no global JAX configuration; ``enable_compile_cache()`` keeps
+compiled programs on disk for the next run when asked.
 """
 
 from cpf_jax.cascade import (
@@ -21,6 +22,7 @@ from cpf_jax.cascade import (
     default_cascade_params,
 )
 from cpf_jax.colour import ColourConfig, build_colour_filter, default_colour_params
+from cpf_jax.compile_cache import enable as enable_compile_cache
 from cpf_jax.dynamics import DEFAULT_TAU, MODELS, THESIS_TAU, MotionParams, propagate
 from cpf_jax.errors import CameraUnavailable, CpfJaxError, SourceError
 from cpf_jax.filter import (
@@ -70,6 +72,7 @@ __all__ = [
     "default_colour_params",
     "default_point_params",
     "default_rgbd_params",
+    "enable_compile_cache",
     "open_source",
     "particle_boxes",
     "propagate",

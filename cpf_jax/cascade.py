@@ -64,6 +64,7 @@ __all__ = [
     "check_points",
     "body_surface",
     "find_body_points",
+    "body_points_confidence",
 ]
 
 BOX_SOURCES = ("estimate", "report")
@@ -208,6 +209,30 @@ def find_body_points(
     inp = _point_frame(config, frame, jnp.asarray(box, jnp.float32), background)
     bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
     return body_extremities(config.points, bm)
+
+
+# The farthest limb of a whole body lies at least this far (mm, geodesic from the head or
+# the centroid, ``find_body_points``) along its surface; a box with only head and shoulders
+# has its "feet" at the shoulders, at most about 600 mm.
+WHOLE_BODY_REACH_MM = 900.0
+NO_BODY_REACH_MM = 500.0
+
+
+def body_points_confidence(reach) -> tuple[float, tuple[str, ...]]:
+    """``(confidence, doubts)`` that ``find_body_points``'s ``reach [4]`` mm belong to a
+    whole body in the box: the farthest limb's reach, 0 at ``NO_BODY_REACH_MM`` and 1 from
+    ``WHOLE_BODY_REACH_MM``, and in words what lowered it."""
+    far = float(np.max(reach))
+    share = float(
+        np.clip((far - NO_BODY_REACH_MM) / (WHOLE_BODY_REACH_MM - NO_BODY_REACH_MM), 0, 1)
+    )
+    doubts = ()
+    if share < 1:
+        doubts = (
+            f"the farthest limb is {far:.0f} mm from the body's centre, and a whole body's "
+            f"reaches {WHOLE_BODY_REACH_MM:.0f} mm: is all of it in the box?",
+        )
+    return share, doubts
 
 
 def _layer2_background(config: CascadeConfig, state: CascadeState, s1) -> Background | None:

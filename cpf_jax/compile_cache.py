@@ -1,9 +1,10 @@
-"""A persistent XLA compilation cache for ``cpf-track`` (and for notebooks that want one).
+"""A persistent XLA compilation cache for ``cpf-track``, and for scripts and notebooks with
+one call, ``cpf_jax.enable_compile_cache()``.
 
 Compiling is much of a short run's time. JAX can keep compiled programs on disk and look
 them up by a hash of the program, the XLA flags and the device, so a second run with the
 same model and sizes skips the compile and gives the same output. The library never switches
-this on by itself (a process-wide JAX setting); the command line does, in
+this on by itself on import (a process-wide JAX setting); the command line does, in
 :func:`default_dir` unless told otherwise (``--compile-cache DIR|off``), and leaves a
 cache the user or a notebook has already configured (``JAX_COMPILATION_CACHE_DIR``,
 ``jax.config``) alone.
@@ -60,13 +61,16 @@ def prune(path: str | os.PathLike, max_bytes: int = DEFAULT_MAX_BYTES) -> int:
     return removed
 
 
-def enable(path: str | os.PathLike, max_bytes: int = DEFAULT_MAX_BYTES) -> Path:
-    """Point JAX's persistent compilation cache at ``path`` (created if missing), after
-    pruning it to ``max_bytes``. Programs that compile in under a second are not kept.
-    Raises ``OSError`` when the directory cannot be created or written."""
+def enable(path: str | os.PathLike | None = None, max_bytes: int = DEFAULT_MAX_BYTES) -> Path:
+    """Point JAX's persistent compilation cache at ``path`` (default :func:`default_dir`,
+    the one ``cpf-track`` uses; created if missing), after pruning it to ``max_bytes``;
+    returns the directory. Programs that compile in under a second are not kept. This is
+    ``cpf_jax.enable_compile_cache``, the one call a notebook or script makes to skip the
+    compile on its next run. Raises ``OSError`` when the directory cannot be created or
+    written."""
     import jax
 
-    path = Path(path).expanduser()
+    path = Path(default_dir() if path is None else path).expanduser()
     path.mkdir(parents=True, exist_ok=True)
     if not os.access(path, os.W_OK | os.X_OK):
         raise PermissionError(f"{path} is not writable")

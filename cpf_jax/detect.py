@@ -26,12 +26,19 @@ Rules (:class:`DetectConfig`):
    frame's edge are about as wide as tall; a row of desks is not).
 
 The largest qualifying blob wins; its tight box is returned.
+
+:func:`find_person_scored` also says how sure it is (:func:`person_confidence`): the
+product of four shares in [0, 1], each 1 for an upright body seen whole, fill (the blob's
+share of its box, full from 40 %), uprightness (height over width, full from 1.8), height
+(of the frame's, full from 30 %) and 0.6 for each frame edge the box touches. A head in a
+corner, head and shoulders cut by the frame, or a row of chairs score low.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import NamedTuple
 
 import cv2
 import jax
@@ -40,7 +47,14 @@ import numpy as np
 from cpf_jax.kernels.background import Background, foreground_mask
 from cpf_jax.types import Frame
 
-__all__ = ["DetectConfig", "person_boxes", "find_person"]
+__all__ = [
+    "DetectConfig",
+    "Detection",
+    "find_person",
+    "find_person_scored",
+    "person_boxes",
+    "person_confidence",
+]
 
 
 @dataclass(frozen=True)
@@ -122,15 +136,8 @@ def _person_box(blob: np.ndarray, h: int, c: DetectConfig):
     return bx, by, bw, bh
 
 
-def person_boxes(
-    frame: Frame, background: Background, config: DetectConfig = DetectConfig()
-) -> np.ndarray:
-    """``[K, 4]`` float32 xywh boxes of the person-shaped foreground blobs, largest first.
-
-    ``frame``: one registered frame (``colour [H, W, 3] uint8``, ``depth [H, W] uint16``
-    mm, zeros where missing); ``background``: its scene without people
-    (``kernels.background.median_background``). Rules in the module docstring.
-    """
+def _blobs(frame: Frame, background: Background, config: DetectConfig) -> list:
+    """``[(area, (x, y, w, h))]`` of the person-shaped blobs, largest first."""
     colour = np.asarray(frame.colour)
     depth = np.asarray(frame.depth)
     if colour.ndim != 3 or colour.shape[:2] != depth.shape:
@@ -161,7 +168,71 @@ def person_boxes(
             if box is not None:
                 found.append((area, box))
     found.sort(key=lambda t: -t[0])
+    return found
+
+
+def person_boxes(
+    frame: Frame, background: Background, config: DetectConfig = DetectConfig()
+) -> np.ndarray:
+    """``[K, 4]`` float32 xywh boxes of the person-shaped foreground blobs, largest first.
+
+    ``frame``: one registered frame (``colour [H, W, 3] uint8``, ``depth [H, W] uint16``
+    mm, zeros where missing); ``background``: its scene without people
+    (``kernels.background.median_background``). Rules in the module docstring.
+    """
+    found = _blobs(frame, background, config)
     return np.asarray([b for _, b in found], np.float32).reshape(-1, 4)
+
+
+class Detection(NamedTuple):
+    """A person found by :func:`find_person_scored`."""
+
+    box: np.ndarray  # [4] float32 xywh
+    confidence: float  # in [0, 1] (person_confidence)
+    doubts: tuple[str, ...]  # what lowered it, in words
+
+
+def person_confidence(box, area: int, frame_hw: tuple[int, int]) -> tuple[float, tuple[str, ...]]:
+    """``(confidence, doubts)`` that the blob of ``area`` pixels with tight ``box`` is a
+    whole upright person (module docstring), and what lowered it, in words."""
+    x, y, w, h = (float(v) for v in box)
+    frame_h, frame_w = frame_hw
+    fill = area / max(w * h, 1.0)
+    shares = {
+        f"it fills {100 * fill:.0f} % of its box": np.clip((fill - 0.15) / 0.25, 0, 1),
+        f"it is about as wide as tall (height / width {h / max(w, 1):.1f})": np.clip(
+            (h / max(w, 1.0) - 0.9) / 0.9, 0, 1
+        ),
+        f"it is {100 * h / frame_h:.0f} % of the frame's height": np.clip(
+            (h / frame_h - 0.15) / 0.15, 0, 1
+        ),
+    }
+    edges = [
+        name
+        for name, touches in (
+            ("left", x <= 0),
+            ("top", y <= 0),
+            ("right", x + w >= frame_w),
+            ("bottom", y + h >= frame_h),
+        )
+        if touches
+    ]
+    if edges:
+        shares[f"the frame's {' and '.join(edges)} edge cuts it"] = 0.6 ** len(edges)
+    confidence = float(np.prod(list(shares.values())))
+    return confidence, tuple(why for why, share in shares.items() if share < 1)
+
+
+def find_person_scored(
+    frame: Frame, background: Background, config: DetectConfig = DetectConfig()
+) -> Detection | None:
+    """The largest person-shaped blob (:func:`find_person`) with its confidence, or None."""
+    found = _blobs(frame, background, config)
+    if not found:
+        return None
+    area, box = found[0]
+    confidence, doubts = person_confidence(box, area, np.shape(frame.depth))
+    return Detection(np.asarray(box, np.float32), confidence, doubts)
 
 
 def find_person(

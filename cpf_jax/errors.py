@@ -13,6 +13,7 @@ __all__ = [
     "CameraUnavailable",
     "ViewerUnavailable",
     "OutputError",
+    "InputWarning",
     "GroundTruthWarning",
 ]
 
@@ -37,7 +38,13 @@ class OutputError(CpfJaxError):
     """An output file cannot be written (``RerunLogger``'s ``.rrd`` path)."""
 
 
-class GroundTruthWarning(UserWarning):
+class InputWarning(UserWarning):
+    """An input was converted or guessed so that the run can go on (depth in metres read
+    as millimetres, intrinsics assumed, depth that does not line up with the colour): the
+    message says what was done and how to give the real value."""
+
+
+class GroundTruthWarning(InputWarning):
     """A ground-truth file has lines that count as "target not visible" without following
     either convention for it (``0,0,0,0`` or all NaN): a negative or zero size, or one NaN
     field, which is more often a typo than a hidden target."""

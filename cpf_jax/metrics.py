@@ -286,7 +286,16 @@ def summarise(
     """
     pred, gt, vis_in, lost_in = _run_inputs(pred_boxes, gt_boxes, visible, lost)
     out = _box_scores(pred, gt, vis_in, lost_in, iou_threshold, precision_px)
-    counts = ("frames", "visible", "matches", "misses", "false_positives", "mismatches")
+    counts = (
+        "frames",
+        "visible",
+        "boxed",
+        "lost",
+        "matches",
+        "misses",
+        "false_positives",
+        "mismatches",
+    )
     return {k: int(v) if k in counts else float(v) for k, v in out.items()}
 
 
@@ -361,6 +370,8 @@ def _box_scores(
     return {
         "frames": jnp.asarray(pred.shape[0]),
         "visible": jnp.sum(vis),
+        "boxed": jnp.sum(with_box),
+        "lost": jnp.sum(lost),
         "success_rate": success_rate(ious, vis, iou_threshold),
         "auc": success_auc(ious, vis),
         "precision": precision(err_or_inf, vis, precision_px),
@@ -381,6 +392,8 @@ def _box_scores(
 _COLUMNS = (
     ("frames", "frames", "{:d}"),
     ("visible", "visible", "{:d}"),
+    ("matches", "matched", "{:d}"),
+    ("lost", "lost", "{:d}"),
     ("success_rate", "SR@0.5 %", "{:.1f}"),
     ("auc", "AUC %", "{:.1f}"),
     ("precision", "P@20px %", "{:.1f}"),
@@ -390,13 +403,27 @@ _COLUMNS = (
     ("sa", "SA px", "{:.1f}"),
 )
 
+# The count each mean is taken over: with none, the table shows "-", not 0.
+_BASIS = {
+    "success_rate": "visible",
+    "auc": "visible",
+    "precision": "visible",
+    "mean_iou": "visible",
+    "mota": "visible",
+    "centre_error": "boxed",
+    "motp": "matches",
+    "motp_iou": "matches",
+    "sa": "matches",
+}
+
 
 def format_summary(
     summaries: Mapping[str, Mapping[str, float | int]] | Mapping[str, float | int],
 ) -> str:
     """A Markdown table of one :func:`summarise` result or a ``{name: result}`` mapping.
 
-    Missing keys are shown as ``-``.
+    Missing keys, and means over no frames (a zero count in ``_BASIS``: no visible
+    frame, no frame with a box, no match), are shown as ``-``.
     """
     if summaries and all(not isinstance(v, Mapping) for v in summaries.values()):
         rows = {"run": summaries}
@@ -408,7 +435,9 @@ def format_summary(
         cells = [str(name)]
         for key, _, fmt in _COLUMNS:
             v = s.get(key)  # type: ignore[union-attr]
-            cells.append("-" if v is None else fmt.format(int(v) if fmt == "{:d}" else float(v)))
+            basis = s.get(_BASIS.get(key, ""), 1)  # type: ignore[union-attr]
+            empty = v is None or basis == 0 or (fmt != "{:d}" and not np.isfinite(float(v)))
+            cells.append("-" if empty else fmt.format(int(v) if fmt == "{:d}" else float(v)))
         body.append(cells)
     widths = [max(len(r[i]) for r in [header, *body]) for i in range(len(header))]
 

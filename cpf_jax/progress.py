@@ -115,6 +115,14 @@ class Progress:
         self.stream.write("\r" + text + " " * pad)
         self.stream.flush()
 
+    def clear(self) -> None:
+        """Blank the bar's line on a terminal, so that another line can be printed there
+        (the next :meth:`update` draws the bar again)."""
+        if self.interactive and self._width:
+            self.stream.write("\r" + " " * self._width + "\r")
+            self.stream.flush()
+            self._width = 0
+
     def close(self) -> None:
         """Print the final summary line once (in both modes)."""
         if self._closed:

@@ -48,16 +48,19 @@ naming the file and the field.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
 from cpf_jax.errors import CpfJaxError
+from cpf_jax.kernels import alignment
 from cpf_jax.types import Frame, Intrinsics
 
 __all__ = [
@@ -71,6 +74,8 @@ __all__ = [
     "register_depth",
     "register_frame",
     "identity_calibration",
+    "Alignment",
+    "check_alignment",
 ]
 
 CALIBRATION_FORMAT = "cpf_jax.calibration/1"
@@ -309,3 +314,62 @@ def register_frame(frame: Frame, calib: Calibration, splat: int = 1) -> Frame:
             f"{calib.colour_size[0]}x{calib.colour_size[1]}"
         )
     return Frame(frame.colour, register_depth(frame.depth, calib, splat))
+
+
+class Alignment(NamedTuple):
+    """How well registered depth lines up with its colour (:func:`check_alignment`)."""
+
+    shift: tuple[int, int]  # (dx, dy) px: colour edges lie this far from the depth edges
+    score: float  # mean colour edge under the depth edges moved by ``shift``, in [0, 1]
+    score_at_zero: float  # the same without a shift
+    edge_pixels: int  # depth edge pixels the scores rest on
+
+    @property
+    def misaligned(self) -> bool:
+        """A clear best shift other than none: 15 % above the unshifted score, on at least
+        ``MIN_EDGE_PIXELS`` depth edge pixels."""
+        return (
+            self.shift != (0, 0)
+            and self.edge_pixels >= MIN_EDGE_PIXELS
+            and self.score > ALIGNMENT_MARGIN * self.score_at_zero
+        )
+
+    def describe(self) -> str:
+        dx, dy = self.shift
+        parts = [f"{abs(dx)} px {'left' if dx > 0 else 'right'}"] if dx else []
+        parts += [f"{abs(dy)} px {'above' if dy > 0 else 'below'}"] if dy else []
+        where = " and ".join(parts) or "on"
+        return (
+            f"depth edges lie {where} of the colour edges (best of shifts up to the "
+            f"search's bound: score {self.score:.2f} against {self.score_at_zero:.2f} "
+            "unshifted)"
+        )
+
+
+# Alignment.misaligned's evidence: depth edge pixels, and the best shift's margin.
+MIN_EDGE_PIXELS = 200
+ALIGNMENT_MARGIN = 1.15
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _summed_scores(colour: Array, depth: Array, max_shift: int) -> tuple[Array, Array]:
+    scores = jax.vmap(alignment.edge_shift_scores, in_axes=(0, 0, None))(colour, depth, max_shift)
+    edges = jax.vmap(alignment.depth_edges)(depth)
+    weights = jnp.sum(edges, axis=(1, 2))
+    total = jnp.sum(scores * weights[:, None, None], 0) / jnp.maximum(jnp.sum(weights), 1.0)
+    return total, jnp.sum(weights)
+
+
+def check_alignment(colour: Array, depth: Array, max_shift: int | None = None) -> Alignment:
+    """The shift between depth edges and colour edges over ``K`` frames (``colour [K, H, W,
+    3] uint8``, registered ``depth [K, H, W]`` mm): ``kernels.alignment``'s scores, summed
+    over the frames by their depth edge pixels, searched up to ``max_shift`` px (default
+    a 32nd of the width, at least 8). Registered depth shows ``shift == (0, 0)``."""
+    colour, depth = np.asarray(colour), np.asarray(depth)
+    if colour.ndim == 3:
+        colour, depth = colour[None], depth[None]
+    s = max(8, colour.shape[2] // 32) if max_shift is None else int(max_shift)
+    total, n = _summed_scores(jnp.asarray(colour), jnp.asarray(depth), s)
+    total = np.asarray(total)
+    dy, dx = np.unravel_index(int(np.argmax(total)), total.shape)
+    return Alignment((int(dx) - s, int(dy) - s), float(total.max()), float(total[s, s]), int(n))

@@ -247,8 +247,8 @@ def test_npz_source_and_load_all(tmp_path):
             "'boxes' must be",
         ),
         (
-            {"colour": np.zeros((2, 3, 3, 3), np.uint8), "depth": np.zeros((2, 3, 3), np.int32)},
-            "uint16",
+            {"colour": np.zeros((2, 3, 3, 3), np.uint8), "depth": np.full((2, 3, 3), -5, np.int32)},
+            "int32 depth from -5 to -5 does not fit 16-bit millimetres",
         ),
     ],
 )

@@ -68,7 +68,7 @@ from cpf_jax.cli.options import (
 )
 from cpf_jax.cli.run import track
 from cpf_jax.cli.summary import point_errors, print_summary, write_plot
-from cpf_jax.errors import CpfJaxError, GroundTruthWarning
+from cpf_jax.errors import CpfJaxError, InputWarning
 
 __all__ = [
     "AUTO_BACKGROUND_FRAMES",
@@ -96,7 +96,7 @@ def _fail(message: str) -> int:
 
 def _warn_line(message, category, filename, lineno, file=None, line=None, *, shown):
     """``warnings.showwarning`` for a run: our input warnings as one line, others as usual."""
-    if issubclass(category, GroundTruthWarning):
+    if issubclass(category, InputWarning):
         print(f"cpf-track: warning: {message}", file=sys.stderr)
     else:
         shown(message, category, filename, lineno, file, line)
@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("always", GroundTruthWarning)
+            warnings.simplefilter("always", InputWarning)
             warnings.showwarning = functools.partial(_warn_line, shown=warnings.showwarning)
             return _run(args)
     except (CpfJaxError, ValueError) as e:  # ValueError: config validation

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
+import warnings
 from collections.abc import Iterator
 from typing import Any, NamedTuple
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from cpf_jax.cli.options import (
     AUTO_BACKGROUND_FRAMES,
+    AUTO_INIT_MIN_CONFIDENCE,
     QUIET_STRIDE,
     UsageError,
     check_box,
@@ -21,7 +23,7 @@ from cpf_jax.cli.options import (
     parse_live_background,
 )
 
-__all__ = ["Inputs", "frame_name", "open_inputs", "quiet_background"]
+__all__ = ["Inputs", "frame_name", "open_inputs", "quiet_background", "ranges"]
 
 
 class Inputs(NamedTuple):
@@ -67,8 +69,52 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     except StopIteration:
         raise UsageError(f"{source.describe()}: no frame to track") from None
     check_box(box, source.size, source.describe())
+    _check_depth(args, source, start, first)
+    if uses_depth:
+        _check_alignment([first, *(bg_frames or [])[:4]], source.describe())
     frames = itertools.chain([(start, first)], frames)
     return Inputs(start, box, frames, first, scene, calib, note, n_frames)
+
+
+def _check_depth(args: argparse.Namespace, source, start: int, first) -> None:
+    """A model that reads depth (``--model`` other than ``rgb``, ``--points``) on a
+    source without any is one error line, not a run that is lost in every frame."""
+    needs = [f"--model {args.model}"] if args.model != "rgb" else []
+    needs += ["--points"] if args.points is not None else []
+    if not needs:
+        return
+    if getattr(source, "has_depth", True) is False:
+        why = "has no depth images (colour only)"
+    elif not np.any(first.depth):
+        why = f"has no depth at frame {start} (every pixel is 0, i.e. missing)"
+    else:
+        return
+    raise UsageError(
+        f"{' and '.join(needs)} read depth, but {source.describe()} {why}; "
+        "track the colour alone with --model rgb and no --points"
+    )
+
+
+def _check_alignment(frames: list, where: str) -> None:
+    """A warning when the depth of ``frames`` (registered, or taken as registered) lines up
+    with the colour only after a shift (:func:`cpf_jax.registration.check_alignment`)."""
+    from cpf_jax.errors import InputWarning
+    from cpf_jax.registration import check_alignment
+
+    colour = np.stack([np.asarray(f.colour) for f in frames])
+    depth = np.stack([np.asarray(f.depth) for f in frames])
+    if colour.shape[1:3] != depth.shape[1:]:
+        return  # the colour layer alone, on raw depth of another size
+    found = check_alignment(colour, depth)
+    if found.misaligned:
+        dx, dy = found.shift
+        warnings.warn(
+            f"{where}: {found.describe()} in {len(frames)} frames: the depth is not "
+            f"registered to the colour; give the recording's calibration with --calib (its "
+            f'"offset_px": [{dx}, {dy}] moves the depth onto the colour)',
+            InputWarning,
+            stacklevel=2,
+        )
 
 
 def _open_recording(args, source, register, need_bg: bool, auto: bool):
@@ -184,25 +230,54 @@ def _open_live(args: argparse.Namespace, source, register, need_bg: bool, auto: 
 
 def _find_start(source, frames, scene):
     """``(box, frames)`` for ``--init auto``: skip to the first frame in which
-    :func:`cpf_jax.detect.find_person` finds someone; ``frames`` starts there."""
-    from cpf_jax.detect import find_person
+    :func:`cpf_jax.detect.find_person_scored` finds someone with confidence at least
+    ``AUTO_INIT_MIN_CONFIDENCE``; ``frames`` starts there. Less sure finds are passed
+    over (the first one said on stderr); with none sure enough, one error line names the
+    best of them."""
+    from cpf_jax.detect import find_person_scored
 
-    first = None
+    first, best, skipped = None, None, 0
     for i, frame in frames:
-        if first is None:
-            first = i
-        box = find_person(frame, scene)
-        if box is not None:
-            x, y, w, h = (int(v) for v in box)
-            print(f"--init auto: a person at {x},{y},{w},{h} in frame {i}", file=sys.stderr)
-            return box, itertools.chain([(i, frame)], frames)
+        first = i if first is None else first
+        found = find_person_scored(frame, scene)
+        if found is None:
+            continue
+        if found.confidence >= AUTO_INIT_MIN_CONFIDENCE:
+            after = f" (passed over {skipped} less sure finds)" if skipped else ""
+            print(
+                f"--init auto: a person at {_xywh(found.box)} in frame {i}, confidence "
+                f"{found.confidence:.2f}{after}",
+                file=sys.stderr,
+            )
+            return found.box, itertools.chain([(i, frame)], frames)
+        if skipped == 0:
+            print(f"--init auto: passed over {_find(found, i)}", file=sys.stderr)
+        skipped += 1
+        if best is None or found.confidence > best[0].confidence:
+            best = (found, i)
     where = source.describe()
     if first is None:
         raise UsageError(f"--init auto: {where} has no frame to search")
+    if best is not None:
+        raise UsageError(
+            f"--init auto: no one found with confidence >= {AUTO_INIT_MIN_CONFIDENCE} in "
+            f"frames {first}..{i} of {where}; the surest was {_find(*best)}; give "
+            "--init x,y,w,h"
+        )
     raise UsageError(
         f"--init auto: no person-shaped foreground in frames {first}..{i} of {where} "
         "(is the background the empty scene?); give --init x,y,w,h"
     )
+
+
+def _xywh(box) -> str:
+    return ",".join(str(int(v)) for v in box)
+
+
+def _find(found, i: int) -> str:
+    """One find in words: where, how sure and why not surer."""
+    doubts = f": {'; '.join(found.doubts)}" if found.doubts else ""
+    return f"a blob at {_xywh(found.box)} in frame {i} (confidence {found.confidence:.2f}{doubts})"
 
 
 def quiet_background(read, indices: list[int]) -> tuple[list, str]:
@@ -228,12 +303,12 @@ def quiet_background(read, indices: list[int]) -> tuple[list, str]:
     chosen = [indices[int(i)] for i in np.asarray(picked)[: int(count)]]
     note = (
         f"background: median of the {len(chosen)} of {len(indices)} frames with the least "
-        f"foreground ({_ranges(chosen)}; choose with --background)"
+        f"foreground ({ranges(chosen)}; choose with --background)"
     )
     return [read(i) for i in chosen], note
 
 
-def _ranges(indices: list[int]) -> str:
+def ranges(indices: list[int]) -> str:
     """``[0, 1, 2, 5, 7, 8]`` -> ``"0-2, 5, 7-8"``."""
     runs: list[list[int]] = []
     for i in indices:
@@ -252,8 +327,10 @@ def frame_name(source, i: int) -> str:
 def _calibration(args: argparse.Namespace, source):
     """The calibration in effect: ``--calib``, else the folder's ``calibration.json``.
 
-    A folder's file that is not in the registration format is ignored by the
-    colour model (it reads intrinsics from it) and an error for the RGB-D models.
+    A folder's file with intrinsics only (no ``"format"`` or ``"depth"`` entry, see
+    docs/recordings.md) says the depth is registered already and registers nothing; any
+    other file that is not in the registration format is ignored by the colour model and
+    an error for the RGB-D models.
     """
     from cpf_jax.registration import CalibrationError, calibration_from_dict, load_calibration
 
@@ -261,6 +338,8 @@ def _calibration(args: argparse.Namespace, source):
         return load_calibration(args.calib)
     if not getattr(source, "calibration", None):
         return None
+    if not {"format", "depth"} & set(source.calibration):
+        return None  # intrinsics only: registered depth (io.folders.intrinsics_from_calibration)
     where = f"{source.path}/calibration.json" if source.path is not None else "calibration"
     try:
         return calibration_from_dict(source.calibration, source=where)

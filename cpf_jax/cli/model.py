@@ -5,12 +5,19 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from typing import Any, NamedTuple
 
 import numpy as np
 
 from cpf_jax.cli.inputs import Inputs
-from cpf_jax.cli.options import JOINT_DEPTH_OFFSET_MM, UsageError, param_options, parse_points
+from cpf_jax.cli.options import (
+    AUTO_POINTS_MIN_CONFIDENCE,
+    JOINT_DEPTH_OFFSET_MM,
+    UsageError,
+    param_options,
+    parse_points,
+)
 from cpf_jax.filter import Context, Filter
 
 __all__ = ["Model", "build_model"]
@@ -72,15 +79,13 @@ def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -
 
     if args.point_particles < 1:
         raise UsageError(f"--point-particles must be >= 1, got {args.point_particles}")
-    if getattr(source, "has_depth", True) is False or not np.any(inputs.first.depth):
-        raise UsageError(
-            f"--points needs depth: {source.describe()} has none at frame {inputs.start}"
-        )
     # 3D estimates need the intrinsics of the frames' pixel grid: the colour camera's
     # after registration, else the source's own (Kinect v2 depth by default).
     calib = inputs.calibration
     intrinsics = calib.colour if calib is not None else source.intrinsics
-    point_kw = {} if intrinsics is None else {"intrinsics": intrinsics}
+    if intrinsics is None:
+        intrinsics = _guessed_intrinsics(source)
+    point_kw = {"intrinsics": intrinsics}
     foreground = background is not None
     if foreground:  # the union of the sizeable components inside the foreground
         point_kw.update(seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05)
@@ -104,6 +109,26 @@ def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -
     return Model(config, params, build_cascade(config), context, n, tuple(names))
 
 
+def _guessed_intrinsics(source):
+    """Intrinsics for a source that has none (``cpf_jax.types.nominal_intrinsics``), with a
+    warning: the body points' millimetres rest on them."""
+    from cpf_jax.errors import InputWarning
+    from cpf_jax.types import nominal_intrinsics
+
+    w, h = source.size
+    k = nominal_intrinsics(w, h)
+    what = "Kinect v2 depth's" if (w, h) == (512, 424) else "a 70 degree field of view's"
+    warnings.warn(
+        f"{source.describe()} has no intrinsics; assuming {what} "
+        f"(fx = fy = {k.fx:g}, cx = {k.cx:g}, cy = {k.cy:g} for {w}x{h}), so the points' "
+        'millimetres are rough; give {"intrinsics": {"fx", "fy", "cx", "cy"}} in the '
+        "folder's calibration.json",
+        InputWarning,
+        stacklevel=2,
+    )
+    return k
+
+
 def _auto_points(config, inputs: Inputs, background):
     """``--points auto``: head, hands and feet found on the body in the start box
     (``cpf_jax.cascade.find_body_points``), printed on stderr; one error line when the box
@@ -111,7 +136,7 @@ def _auto_points(config, inputs: Inputs, background):
     import jax
     import jax.numpy as jnp
 
-    from cpf_jax.cascade import find_body_points
+    from cpf_jax.cascade import body_points_confidence, find_body_points
     from cpf_jax.points import AUTO_POINTS
 
     xy, reach = jax.jit(find_body_points, static_argnums=0)(
@@ -122,6 +147,13 @@ def _auto_points(config, inputs: Inputs, background):
         raise UsageError(
             f"--points auto: no body at the box's depth in frame {inputs.start}; give x,y;x,y;..."
         )
+    confidence, doubts = body_points_confidence(reach)
     found = "; ".join(f"{n} {x:.0f},{y:.0f}" for n, (x, y) in zip(AUTO_POINTS, xy, strict=True))
-    print(f"--points auto: {found} in frame {inputs.start}", file=sys.stderr)
+    found = f"{found} in frame {inputs.start}, confidence {confidence:.2f}"
+    if confidence < AUTO_POINTS_MIN_CONFIDENCE:
+        raise UsageError(
+            f"--points auto: found {found} (< {AUTO_POINTS_MIN_CONFIDENCE}: "
+            f"{'; '.join(doubts)}); give the points as x,y;x,y;..."
+        )
+    print(f"--points auto: {found}", file=sys.stderr)
     return xy.astype(np.float32), AUTO_POINTS

@@ -14,6 +14,8 @@ from cpf_jax.points import BODY_POINT_DEPTH_OFFSET_MM, BODY_POINTS
 __all__ = [
     "AUTO_BACKGROUND_FRAMES",
     "AUTO_CANDIDATES",
+    "AUTO_INIT_MIN_CONFIDENCE",
+    "AUTO_POINTS_MIN_CONFIDENCE",
     "JOINTS",
     "JOINT_DEPTH_OFFSET_MM",
     "UsageError",
@@ -117,6 +119,10 @@ def check_box(box: np.ndarray, size: tuple[int, int], where: str) -> None:
 AUTO_BACKGROUND_FRAMES = 25
 AUTO_CANDIDATES = 150
 QUIET_STRIDE = 4  # pixel lattice of the candidates' foreground shares
+# --init auto and --points auto start only on finds at least this sure (detect,
+# cascade.body_points_confidence): a whole upright person in view scores about 1.
+AUTO_INIT_MIN_CONFIDENCE = 0.5
+AUTO_POINTS_MIN_CONFIDENCE = 0.5
 
 
 def parse_background(text: str, n_frames: int) -> list[int]:

@@ -5,8 +5,10 @@ and info share (``cpf_jax.filter``), and the body points when the model has them
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
+from collections.abc import Iterator
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -157,10 +159,12 @@ def _loop(args, source, inputs: Inputs, model: Model, sinks: Sinks, results: Res
         t0 = time.perf_counter()
         if state is None:
             box = jnp.asarray(inputs.box)
-            state = init(model.params, k, frame, box, model.context)
+            with _compiling("init", bar):
+                state = jax.block_until_ready(init(model.params, k, frame, box, model.context))
             row = _first_row(inputs, model, (time.perf_counter() - t0) * 1000.0)
         else:
-            state, info = step(model.params, k, state, frame)
+            with _compiling("step", bar) if not results.windowed else contextlib.nullcontext():
+                state, info = jax.block_until_ready(step(model.params, k, state, frame))
             row = _step_row(model, info, (time.perf_counter() - t0) * 1000.0)
             results.windowed.append(bool(info.windowed))
         if not np.all(np.isfinite(row.box)):  # never write a NaN box
@@ -169,6 +173,19 @@ def _loop(args, source, inputs: Inputs, model: Model, sinks: Sinks, results: Res
         sinks.write(i, frame_np, frame, row, state)
         bar.update()
     bar.close()  # the final progress line only for a completed run
+
+
+@contextlib.contextmanager
+def _compiling(what: str, bar) -> Iterator[None]:
+    """One stderr line around the first call of the jitted ``init`` or ``step``, which
+    compiles it (or loads it from the disk cache) before it runs, with its time."""
+    bar.clear()
+    print(f"cpf-track: compiling {what} (first call) ...", end="", file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        print(f" {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
 
 
 def track(args: argparse.Namespace, source, inputs: Inputs, model: Model):

@@ -4,6 +4,7 @@ against synthetic joints, and the ``--plot`` figure."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import NamedTuple
 
@@ -12,7 +13,14 @@ import numpy as np
 from cpf_jax.cli.options import JOINTS
 from cpf_jax.errors import CpfJaxError
 
-__all__ = ["Results", "point_errors", "point_table", "write_plot", "print_summary"]
+__all__ = [
+    "Results",
+    "point_errors",
+    "point_table",
+    "print_summary",
+    "scored_line",
+    "write_plot",
+]
 
 
 class Results(NamedTuple):
@@ -151,8 +159,9 @@ def write_plot(
 
 
 def print_summary(args: argparse.Namespace, source, inputs, model, results: Results) -> None:
-    """The run in a few lines: what was tracked, notes, the metrics table against the ground
-    truth, the body points' errors and where the outputs went."""
+    """The run in a few lines: what was tracked, the metrics table against the ground truth
+    with which frames it scores, and the body points' errors on stdout; notes and where the
+    outputs went on stderr."""
     from cpf_jax.metrics import format_summary, summarise
 
     registered = ", depth registered" if inputs.calibration is not None else ""
@@ -162,11 +171,11 @@ def print_summary(args: argparse.Namespace, source, inputs, model, results: Resu
         f"N={model.n_particles} (model {args.model}{registered}{points})"
     )
     if inputs.note is not None:
-        print(f"note: {inputs.note}")
+        _note(inputs.note)
     n_steps, n_windowed = len(results.windowed), sum(results.windowed)
     if n_windowed < n_steps:
-        print(
-            f"note: {n_steps - n_windowed} of {n_steps} steps counted histograms on the whole "
+        _note(
+            f"{n_steps - n_windowed} of {n_steps} steps counted histograms on the whole "
             "frame (exact, slower): particle boxes left the histogram window sized for the "
             "initial box (info.windowed)"
         )
@@ -176,12 +185,40 @@ def print_summary(args: argparse.Namespace, source, inputs, model, results: Resu
         lost = np.asarray(results.lost)
         summary = summarise(np.stack(results.boxes), source.gt_boxes[idx], vis, lost)
         print(format_summary({Path(str(args.path)).name or str(args.path): summary}))
+        print(scored_line(idx, source.gt_boxes[idx], vis, summary))
+    elif idx.size:
+        print("no ground truth: nothing scored (boxes only)")
     errors = point_errors(args, source, model.points, results)
     if errors is not None:
         print(point_table(errors))
     if args.out:
-        print(f"boxes written to {args.out}")
+        _note(f"boxes written to {args.out}")
     if args.rrd:
-        print(f"Rerun recording written to {args.rrd}")
+        _note(f"Rerun recording written to {args.rrd}")
     if args.plot and results.frames:
-        print(f"plot written to {args.plot}")
+        _note(f"plot written to {args.plot}")
+
+
+def scored_line(frames: np.ndarray, gt: np.ndarray, visible, summary: dict) -> str:
+    """Which of the tracked ``frames`` the table scores, which it leaves out and why, and
+    how many were matched (IoU >= 0.5) and reported lost."""
+    from cpf_jax.cli.inputs import ranges
+    from cpf_jax.metrics import gt_visible
+
+    counted = np.asarray(gt_visible(gt, visible), bool)
+    line = (
+        f"scored {int(counted.sum())} of {frames.size} tracked frames "
+        f"({frames[0]}-{frames[-1]}, the first being the start box); matched "
+        f"{summary['matches']} (IoU >= 0.5), lost {summary['lost']}"
+    )
+    if not counted.all():
+        left = [int(i) for i in frames[~counted]]
+        line += f"; left out, the target not visible in the ground truth: {ranges(left)}"
+    if frames[0] > 0:
+        before = ranges(list(range(int(frames[0]))))
+        line += f"; frame(s) {before} come before the start and are not tracked"
+    return line
+
+
+def _note(message: str) -> None:
+    print(f"cpf-track: note: {message}", file=sys.stderr)

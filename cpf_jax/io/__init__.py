@@ -17,7 +17,13 @@ from cpf_jax.io.folders import (
     open_tum,
 )
 from cpf_jax.io.groundtruth import load_groundtruth, load_occlusion
-from cpf_jax.io.images import princeton_depth, read_colour, read_depth, tum_depth
+from cpf_jax.io.images import (
+    depth_millimetres,
+    princeton_depth,
+    read_colour,
+    read_depth,
+    tum_depth,
+)
 from cpf_jax.io.results import ResultsWriter, read_results
 from cpf_jax.io.sources import open_source
 from cpf_jax.io.synthetic import SyntheticSource, open_synthetic
@@ -44,6 +50,7 @@ __all__ = [
     "load_occlusion",
     "read_colour",
     "read_depth",
+    "depth_millimetres",
     "princeton_depth",
     "tum_depth",
     "ResultsWriter",

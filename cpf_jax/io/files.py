@@ -1,7 +1,9 @@
 """Single-file sources: ``.npz`` arrays and video files.
 
 * ``.npz`` (``kind="npz"``): ``colour`` (or ``color`` / ``rgb``) ``[T, H, W, 3]
-  uint8`` RGB, optional ``depth [T, H', W'] uint16`` mm, ``boxes [T, 4]`` xywh
+  uint8`` RGB, optional ``depth [T, H', W']`` (``uint16`` mm,
+  or floating-point metres or millimetres, converted by
+  :func:`~cpf_jax.io.images.depth_millimetres` with a warning), ``boxes [T, 4]`` xywh
   0-based, ``visible [T] bool`` and ``intrinsics [4]`` (fx, fy, cx, cy). NumPy
   cannot memory-map arrays inside a zip, so each array is loaded whole on the
   first frame read.
@@ -11,14 +13,16 @@
 
 from __future__ import annotations
 
+import warnings
 import zipfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from cpf_jax.errors import SourceError
+from cpf_jax.errors import InputWarning, SourceError
 from cpf_jax.io.base import FrameSource, Recording
+from cpf_jax.io.images import depth_millimetres
 from cpf_jax.types import Frame, Intrinsics
 
 __all__ = ["NpzSource", "VideoSource", "VIDEO_SUFFIXES"]
@@ -100,9 +104,9 @@ class NpzSource(FrameSource):
                 )
             self._colour = colour
             if "depth" in self._npz.files:
-                depth = self._npz["depth"]
-                if depth.dtype != np.uint16:
-                    raise SourceError(f"{self.path}: 'depth' must be uint16 mm, got {depth.dtype}")
+                depth, note = depth_millimetres(self._npz["depth"], f"{self.path}: 'depth'")
+                if note is not None:
+                    warnings.warn(note, InputWarning, stacklevel=2)
                 self._depth = depth
         return self._colour, self._depth
 

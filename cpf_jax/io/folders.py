@@ -32,17 +32,19 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from cpf_jax.errors import SourceError
+from cpf_jax.errors import InputWarning, SourceError
 from cpf_jax.io.base import FrameSource
 from cpf_jax.io.groundtruth import load_groundtruth, load_occlusion
 from cpf_jax.io.images import (
     DepthDecoder,
+    depth_millimetres,
     list_images,
     princeton_depth,
     read_colour,
@@ -127,8 +129,11 @@ class ImageFolderSource(FrameSource):
         if dpath is None:
             shape = self._depth_shape or colour.shape[:2]
             return Frame(colour, np.zeros(shape, np.uint16))
-        depth = read_depth(dpath, self.depth_decoder)
-        if self._depth_shape is None:
+        first = self._depth_shape is None
+        depth, note = depth_millimetres(read_depth(dpath, self.depth_decoder), str(dpath), first)
+        if note is not None and first:
+            warnings.warn(f"{note} (and every depth image of {self.path})", InputWarning, 2)
+        if first:
             self._depth_shape = depth.shape
         elif depth.shape != self._depth_shape:
             raise SourceError(

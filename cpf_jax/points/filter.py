@@ -37,6 +37,7 @@ from cpf_jax.kernels import spin as sk
 from cpf_jax.params import P, props, values
 from cpf_jax.points.body import BodyModel, body_model, pixel_centre, point_3d, window_pixels
 from cpf_jax.points.config import PointConfig
+from cpf_jax.types import check_intrinsics
 
 __all__ = [
     "PointMotionParams",
@@ -181,6 +182,7 @@ def point_init(
     the nearest body pixel with a normal when off the body), and a cloud around each."""
     if context is None or context.points is None:
         raise ValueError("the point filter needs the points to track: Context(points=[P, 2])")
+    check_intrinsics(config.intrinsics, frame.depth.shape[:2], "PointConfig.intrinsics")
     points = jnp.asarray(context.points, jnp.float32)
     p = points.shape[0]
     bm = body_model(config, frame.depth, box, frame.foreground)

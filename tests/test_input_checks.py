@@ -1,0 +1,301 @@
+"""Inputs checked for meaning: each case is a plausible but wrong input, and what it now gives
+(an error line that says what is wrong, or a warning that says what was done instead)."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import cv2
+import jax
+import numpy as np
+import pytest
+
+from cpf_jax.cli import build_parser, main
+from cpf_jax.cli.inputs import open_inputs
+from cpf_jax.errors import InputWarning, SourceError
+from cpf_jax.io import NpzSource, depth_millimetres, open_source
+from cpf_jax.synthetic import make_sequence, to_folder
+from cpf_jax.types import (
+    KINECT_V2_DEPTH,
+    Frame,
+    check_frame,
+    check_intrinsics,
+    nominal_intrinsics,
+)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return make_sequence("walk_across_slow", seed=3, n_frames=4)
+
+
+@pytest.fixture(scope="module")
+def folder(seq, tmp_path_factory) -> Path:
+    return Path(to_folder(seq, tmp_path_factory.mktemp("rec") / "walk"))
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("cpf-track: error: ")
+    return err[0]
+
+
+# ------------------------------------------------------------------------ depth where needed
+
+
+def test_a_depth_model_on_colour_only_footage_is_an_error(seq, tmp_path, capsys):
+    otb = tmp_path / "Walker"
+    (otb / "img").mkdir(parents=True)
+    for t in range(3):
+        cv2.imwrite(str(otb / "img" / f"{t + 1:04d}.jpg"), seq.colour[t][..., ::-1])
+    (otb / "groundtruth_rect.txt").write_text("101,81,60,180\n" * 3)
+    assert main([str(otb), "--model", "grid-occlusion", "--no-progress"]) == 2
+    line = _one_error_line(capsys)
+    assert "--model grid-occlusion read depth" in line and "has no depth images" in line
+    assert "--model rgb" in line
+
+
+def test_a_folder_whose_depth_is_all_missing_is_an_error(seq, folder, tmp_path, capsys):
+    blank = tmp_path / "blank"
+    to_folder(seq, blank)
+    for p in (blank / "depth").iterdir():
+        cv2.imwrite(str(p), np.zeros(seq.depth.shape[1:], np.uint16))
+    assert main([str(blank), "--model", "rgbd", "--background", "2", "--no-progress"]) == 2
+    assert "every pixel is 0, i.e. missing" in _one_error_line(capsys)
+
+
+# ------------------------------------------------------------------------------ depth units
+
+
+def test_depth_units_from_dtype_and_range():
+    metres = np.array([[0.0, 1.5], [np.nan, 4.25]], np.float32)
+    mm, note = depth_millimetres(metres, "f")
+    np.testing.assert_array_equal(mm, [[0, 1500], [0, 4250]])
+    assert mm.dtype == np.uint16 and "read as metres" in note
+    mm, note = depth_millimetres(np.array([[900.4, 2500.0]], np.float64), "f")
+    np.testing.assert_array_equal(mm, [[900, 2500]])
+    assert "read as millimetres" in note
+    mm, note = depth_millimetres(np.array([[1200, 0]], np.int32), "f")
+    assert mm.dtype == np.uint16 and note is None
+    raw = np.array([[1234, 0]], np.uint16)
+    assert depth_millimetres(raw, "f")[0] is raw
+    with pytest.raises(SourceError, match="f: the median depth is 12500"):
+        depth_millimetres(np.full((2, 2), 12500 * 2, np.uint16) // 2, "f")  # TUM: 2.5 m
+    with pytest.raises(SourceError, match="does not fit 16-bit"):
+        depth_millimetres(np.array([[70000]], np.int32), "f")
+    with pytest.raises(SourceError, match="must be a number image"):
+        depth_millimetres(np.ones((2, 2), bool), "f")
+
+
+def test_an_npz_with_metres_is_converted_and_says_so(seq, tmp_path):
+    path = tmp_path / "metres.npz"
+    metres = seq.depth[:2].astype(np.float32) / 1000.0
+    np.savez(path, colour=seq.colour[:2], depth=metres)
+    with pytest.warns(InputWarning, match=r"metres.npz: 'depth': float32 depth read as metres"):
+        frame = NpzSource(path).read(1)
+    np.testing.assert_array_equal(frame.depth, seq.depth[1])
+
+
+def test_an_npz_in_tum_units_is_refused(seq, tmp_path):
+    path = tmp_path / "tum.npz"
+    np.savez(path, colour=seq.colour[:2], depth=(seq.depth[:2] * 5).astype(np.uint16))
+    with pytest.raises(SourceError, match="tum.npz: 'depth': the median depth is"):
+        NpzSource(path).read(0)
+
+
+def test_a_folder_of_float_depth_images_is_read_in_millimetres(seq, tmp_path):
+    path = Path(to_folder(seq, tmp_path / "f32"))
+    for p in sorted((path / "depth").iterdir()):
+        t = int(p.stem)
+        cv2.imwrite(str(p.with_suffix(".tiff")), seq.depth[t].astype(np.float32) / 1000.0)
+        p.unlink()
+    source = open_source(str(path))
+    with pytest.warns(InputWarning, match="float32 depth read as metres"):
+        first = source.read(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)  # said once, for every image
+        np.testing.assert_array_equal(source.read(2).depth, seq.depth[2])
+    np.testing.assert_array_equal(first.depth, seq.depth[0])
+
+
+def test_the_rgbd_filter_refuses_float_depth_under_jit(seq):
+    from cpf_jax import RGBDConfig, build_rgbd_filter, default_rgbd_params
+
+    frame = Frame(seq.colour[0], seq.depth[0].astype(np.float32) / 1000.0)
+    with pytest.raises(ValueError, match="frame depth is float32.*depth_millimetres"):
+        check_frame(frame, needs_depth=True)
+    config = RGBDConfig(n_particles=8)
+    filt = build_rgbd_filter(config)
+    with pytest.raises(ValueError, match="frame depth is float32"):
+        jax.jit(filt.init)(default_rgbd_params(config), jax.random.PRNGKey(0), frame, seq.boxes[0])
+
+
+# ------------------------------------------------------------------------------- intrinsics
+
+
+def test_intrinsics_of_another_frame_size_are_refused():
+    check_intrinsics(KINECT_V2_DEPTH, (424, 512))
+    with pytest.raises(ValueError, match=r"\(255, 205\) do not belong to 320x240 frames"):
+        check_intrinsics(KINECT_V2_DEPTH, (240, 320))
+    with pytest.raises(ValueError, match="640x480"):
+        check_intrinsics(KINECT_V2_DEPTH, (480, 640))
+    k = nominal_intrinsics(320, 240)
+    assert k.fx == k.fy == pytest.approx(365.0 * 320 / 512) and (k.cx, k.cy) == (159.5, 119.5)
+    check_intrinsics(k, (240, 320))
+    assert nominal_intrinsics(512, 424) == KINECT_V2_DEPTH
+
+
+def test_the_point_filter_refuses_intrinsics_that_do_not_fit_the_frame():
+    from cpf_jax import Context, PointConfig, PointFrame, build_point_filter, default_point_params
+
+    filt = build_point_filter(PointConfig(n_particles=8))  # Kinect v2 intrinsics by default
+    frame = PointFrame(np.full((240, 320), 2000, np.uint16), np.ones((240, 320), bool))
+    box = np.array([100, 40, 60, 150], np.float32)
+    ctx = Context(points=np.array([[130.0, 60.0]], np.float32))
+    with pytest.raises(ValueError, match="PointConfig.intrinsics: intrinsics with the principal"):
+        filt.init(default_point_params(), jax.random.PRNGKey(0), frame, box, ctx)
+
+
+# -------------------------------------------------------------------------------- alignment
+
+
+def _shifted(depth: np.ndarray, dx: int) -> np.ndarray:
+    """Depth moved ``dx`` px to the left (0 = missing where nothing lands)."""
+    out = np.zeros_like(depth)
+    out[..., : depth.shape[-1] - dx] = depth[..., dx:]
+    return out
+
+
+def test_depth_that_does_not_line_up_with_colour_is_found(seq):
+    from cpf_jax.registration import check_alignment
+
+    aligned = check_alignment(seq.colour[:2], seq.depth[:2])
+    assert aligned.shift == (0, 0) and not aligned.misaligned
+    off = check_alignment(seq.colour[:2], _shifted(seq.depth[:2], 8))
+    assert off.shift == (8, 0) and off.misaligned, off
+    assert "8 px left of the colour edges" in off.describe()
+
+
+def test_the_command_line_warns_when_depth_is_not_registered(seq, tmp_path):
+    path = Path(to_folder(seq, tmp_path / "off"))
+    for p in (path / "depth").iterdir():
+        d = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(p), _shifted(d, 10))
+    args = build_parser().parse_args([str(path), "--model", "rgbd", "--background", "2"])
+    with pytest.warns(InputWarning, match=r"depth edges lie 10 px left.*offset_px\": \[10, 0\]"):
+        open_inputs(args, open_source(str(path)))
+    args = build_parser().parse_args(["walk_across_slow", "--model", "rgbd"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)  # registered depth: no word
+        open_inputs(args, open_source("walk_across_slow"))
+
+
+# ---------------------------------------------------------------------- confidence of guesses
+
+
+def test_person_confidence_is_high_for_a_walker_and_low_for_a_head_in_a_corner(seq):
+    from cpf_jax.detect import find_person_scored, person_confidence
+    from cpf_jax.io import SyntheticSource
+    from cpf_jax.kernels.background import median_background
+
+    empty = SyntheticSource(seq, "walk_across_slow").empty_background()
+    background = median_background(empty.colour[None], empty.depth[None])
+    found = find_person_scored(Frame(seq.colour[1], seq.depth[1]), background)
+    assert found.confidence >= 0.5, found
+    corner, doubts = person_confidence((0, 0, 60, 55), 2400, (424, 512))
+    assert corner < 0.3
+    assert any("left and top edge" in d for d in doubts)
+    assert any("as wide as tall" in d for d in doubts)
+
+
+def test_init_auto_refuses_a_blob_it_is_not_sure_of(seq, tmp_path, capsys):
+    from cpf_jax.io import SyntheticSource
+
+    empty = SyntheticSource(seq, "walk_across_slow").empty_background()
+    path = tmp_path / "corner"
+    (path / "rgb").mkdir(parents=True)
+    (path / "depth").mkdir()
+    for t in range(8):  # the empty room, then something head-sized in the top-left corner
+        colour, depth = np.array(empty.colour), np.array(empty.depth)
+        if t >= 5:
+            colour[:70, :65] = (200, 170, 150)
+            depth[:70, :65] = 1500
+        cv2.imwrite(str(path / "rgb" / f"{t:03d}.png"), colour[..., ::-1])
+        cv2.imwrite(str(path / "depth" / f"{t:03d}.png"), depth)
+    argv = [str(path), "--init", "auto", "--model", "rgbd", "--background", "0:5"]
+    assert main([*argv, "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[0].startswith("--init auto: passed over a blob at 0,0,65,70 in frame 5")
+    assert "no one found with confidence >= 0.5 in frames 0..7" in err[-1]
+    assert "the frame's left and top edge cuts it" in err[-1]
+
+
+def test_points_auto_refuses_a_box_without_the_whole_body(seq, folder, capsys):
+    x, y, w, h = seq.boxes[1]
+    upper = f"{x:.0f},{y:.0f},{w:.0f},{h / 3:.0f}"  # head and shoulders
+    argv = [str(folder), "--model", "rgbd", "--init", upper, "--start", "1", "--background", "2"]
+    assert main([*argv, "--points", "auto", "--no-progress"]) == 2
+    warning, line = capsys.readouterr().err.strip().splitlines()
+    # The folder has no calibration.json: the points' millimetres rest on a guess, said so.
+    assert warning.startswith("cpf-track: warning: ") and "has no intrinsics; assuming" in warning
+    assert line.startswith("cpf-track: error: --points auto: found head")
+    assert "the farthest limb is" in line
+    assert "give the points as x,y;x,y;..." in line
+
+
+def test_body_points_confidence():
+    from cpf_jax.cascade import body_points_confidence
+
+    assert body_points_confidence([450, 520, 900, 1050]) == (1.0, ())
+    low, doubts = body_points_confidence([380, 270, 600, 364])
+    assert low == pytest.approx(0.25) and "the farthest limb is 600 mm" in doubts[0]
+
+
+# ------------------------------------------------------------------ results that cannot mislead
+
+
+def test_a_run_that_matches_nothing_prints_dashes_and_says_what_it_scored(folder, capsys):
+    argv = [str(folder), "--init", "400,20,40,60", "--particles", "16", "--no-progress"]
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    header, _, row = out.splitlines()[1:4]
+    names, values = ([c.strip() for c in line.split("|")] for line in (header, row))
+    cells = dict(zip(names, values, strict=True))
+    assert cells["matched"] == "0"
+    assert cells["MOTP px"] == "-" and cells["SA px"] == "-"  # nothing matched to average
+    assert "scored 4 of 4 tracked frames (0-3, the first being the start box)" in out
+    assert "matched 0 (IoU >= 0.5)" in out
+    # The compile is said, on stderr, as every note; stdout holds the results.
+    assert "cpf-track: compiling init (first call) ... " in err
+    assert "cpf-track: compiling step (first call) ... " in err
+    assert "compiling" not in out and "note" not in out
+
+
+def test_format_summary_prints_a_dash_for_a_mean_over_nothing():
+    from cpf_jax.metrics import format_summary, summarise
+
+    gt = np.array([[10, 10, 20, 40]] * 3, np.float32)
+    s = summarise(gt + [200, 0, 0, 0], gt, lost=np.ones(3, bool))  # lost throughout
+    assert s["boxed"] == 0 and s["lost"] == 3 and s["centre_error"] == 0.0
+    row = format_summary(s).splitlines()[2].split("|")[1:-1]
+    assert [c.strip() for c in row][-5:] == ["0.0", "-", "-", "0.0", "-"]  # P, CE, MOTP, MOTA, SA
+
+
+# ------------------------------------------------------------------------------ compile cache
+
+
+def test_one_call_keeps_compiled_programs_for_the_next_run(monkeypatch, tmp_path):
+    import cpf_jax
+
+    keys = ("jax_compilation_cache_dir", "jax_enable_compilation_cache")
+    before = {k: getattr(jax.config, k) for k in keys}
+    monkeypatch.setenv("CPF_JAX_COMPILE_CACHE", str(tmp_path / "cache"))
+    try:
+        assert cpf_jax.enable_compile_cache() == tmp_path / "cache"
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache")
+        assert jax.config.jax_enable_compilation_cache is True
+    finally:
+        for k, v in before.items():
+            jax.config.update(k, v)
