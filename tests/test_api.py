@@ -29,9 +29,10 @@ from cpf_jax.points import (
     default_point_params,
 )
 from cpf_jax.rgbd import VARIANTS, RGBDConfig, build_rgbd_filter, default_rgbd_params, rgbd_props
-from cpf_jax.types import Frame
+from cpf_jax.types import Frame, nominal_intrinsics
 
 H, W, T, N = 96, 128, 4, 16
+INTRINSICS = nominal_intrinsics(W, H)  # the point filter checks them against the frame
 BOX = np.array([40.0, 20.0, 30.0, 60.0], np.float32)
 POINTS = np.array([[55.0, 30.0], [50.0, 70.0]], np.float32)
 
@@ -55,12 +56,17 @@ BOX_FILTERS = {
         for v in VARIANTS
     },
     "cascade-rgbd": (
-        CascadeConfig(box=RGBDConfig(n_particles=N), points=PointConfig(n_particles=8)),
+        CascadeConfig(
+            box=RGBDConfig(n_particles=N), points=PointConfig(n_particles=8, intrinsics=INTRINSICS)
+        ),
         build_cascade,
         default_cascade_params,
     ),
     "cascade-colour": (
-        CascadeConfig(box=ColourConfig(n_particles=N), points=PointConfig(n_particles=8)),
+        CascadeConfig(
+            box=ColourConfig(n_particles=N),
+            points=PointConfig(n_particles=8, intrinsics=INTRINSICS),
+        ),
         build_cascade,
         default_cascade_params,
     ),
@@ -70,7 +76,7 @@ BOX_FILTERS = {
 @pytest.mark.parametrize("name", [*BOX_FILTERS, "points"])
 def test_every_builder_returns_the_one_filter_shape(name):
     if name == "points":
-        config, build = PointConfig(n_particles=8), build_point_filter
+        config, build = PointConfig(n_particles=8, intrinsics=INTRINSICS), build_point_filter
     else:
         config, build, _ = BOX_FILTERS[name]
     filt = build(config)
@@ -110,7 +116,7 @@ def test_box_filters_share_their_info_fields_state_cloud_and_track(name):
 
 
 def test_the_point_filter_runs_through_the_same_track():
-    filt = build_point_filter(PointConfig(n_particles=8, window=(32, 24)))
+    filt = build_point_filter(PointConfig(n_particles=8, window=(32, 24), intrinsics=INTRINSICS))
     frames = PointFrame(
         jax.ShapeDtypeStruct((T, H, W), jnp.uint16), jax.ShapeDtypeStruct((T, 4), jnp.float32)
     )
@@ -126,7 +132,7 @@ def test_the_point_filter_runs_through_the_same_track():
 
 
 def test_the_point_filter_needs_its_points():
-    filt = build_point_filter(PointConfig(n_particles=8, window=(32, 24)))
+    filt = build_point_filter(PointConfig(n_particles=8, window=(32, 24), intrinsics=INTRINSICS))
     frame = PointFrame(jnp.zeros((H, W), jnp.uint16), jnp.asarray(BOX))
     with pytest.raises(ValueError, match="points to track"):
         filt.init(default_point_params(), jax.random.PRNGKey(0), frame, BOX)

@@ -39,8 +39,11 @@ summary are written).
 ``--plot FILE.png`` draws the run (IoU and ESS / N per frame, the success plot, the body
 points' 3D errors when they are scored) at its end, or when it is interrupted.
 
-Exit codes: 0 success, 2 bad input (path, image, box, option, camera, viewer), 130
-interrupted.
+Results (the run's line, the metrics table, which frames it scores) go to stdout; notes,
+warnings (``cpf_jax.errors.InputWarning``: an input converted or guessed) and the compile
+time of the first ``init`` and ``step`` go to stderr. Exit codes: 0 success, 2 bad input
+(path, image, box, option, camera, viewer, a model that needs depth on a source without
+it, a guess too unsure to start from), 130 interrupted.
 """
 
 from __future__ import annotations
