@@ -336,11 +336,11 @@ class Alignment(NamedTuple):
 
     def describe(self) -> str:
         dx, dy = self.shift
-        parts = [f"{abs(dx)} px {'left' if dx > 0 else 'right'}"] if dx else []
+        parts = [f"{abs(dx)} px {'left of' if dx > 0 else 'right of'}"] if dx else []
         parts += [f"{abs(dy)} px {'above' if dy > 0 else 'below'}"] if dy else []
         where = " and ".join(parts) or "on"
         return (
-            f"depth edges lie {where} of the colour edges (best of shifts up to the "
+            f"depth edges lie {where} the colour edges (best of shifts up to the "
             f"search's bound: score {self.score:.2f} against {self.score_at_zero:.2f} "
             "unshifted)"
         )

@@ -10,6 +10,7 @@ import cv2
 import jax
 import numpy as np
 import pytest
+from conftest import ROOT, shared_data
 
 from cpf_jax.cli import build_parser, main
 from cpf_jax.cli.inputs import open_inputs
@@ -176,6 +177,26 @@ def test_depth_that_does_not_line_up_with_colour_is_found(seq):
     off = check_alignment(seq.colour[:2], _shifted(seq.depth[:2], 8))
     assert off.shift == (8, 0) and off.misaligned, off
     assert "8 px left of the colour edges" in off.describe()
+
+
+def test_the_real_recordings_depth_lies_beside_its_colour_without_the_fitted_offset():
+    # The annotator fitted a 10-12 px shift by eye (images1/ANNOTATION.md); the check finds
+    # it, and finds nothing once the calibration carries it.
+    import json
+
+    from cpf_jax.registration import calibration_from_dict, check_alignment, register_depth
+
+    source = open_source(str(shared_data("ist_piv_rgbd", "images1")))
+    frames = [source.read(i) for i in (1, 10, 20, 60, 80)]
+    colour = np.stack([f.colour for f in frames])
+    fitted = json.loads((ROOT / "experiments" / "calib" / "ist_piv.json").read_text())
+    for offset, misaligned in (([0.0, 0.0], True), (fitted["offset_px"], False)):
+        calib = calibration_from_dict({**fitted, "offset_px": offset})
+        depth = np.stack([np.asarray(register_depth(f.depth, calib)) for f in frames])
+        found = check_alignment(colour, depth)
+        assert found.misaligned is misaligned, found
+        if misaligned:
+            assert 9 <= found.shift[0] <= 12 and abs(found.shift[1]) <= 3, found
 
 
 def test_the_command_line_warns_when_depth_is_not_registered(seq, tmp_path):
