@@ -353,8 +353,10 @@ ALIGNMENT_MARGIN = 1.15
 
 @functools.partial(jax.jit, static_argnums=2)
 def _summed_scores(colour: Array, depth: Array, max_shift: int) -> tuple[Array, Array]:
-    scores = jax.vmap(alignment.edge_shift_scores, in_axes=(0, 0, None))(colour, depth, max_shift)
-    edges = jax.vmap(alignment.depth_edges)(depth)
+    """Per-frame shift scores summed with each frame's depth edge pixels as its weight."""
+    edges = jax.vmap(alignment.depth_edges)(depth)  # once: the scores and their weights
+    colour_edges = jax.vmap(alignment.colour_edges)(colour)
+    scores = jax.vmap(alignment.shift_scores, in_axes=(0, 0, None))(colour_edges, edges, max_shift)
     weights = jnp.sum(edges, axis=(1, 2))
     total = jnp.sum(scores * weights[:, None, None], 0) / jnp.maximum(jnp.sum(weights), 1.0)
     return total, jnp.sum(weights)
