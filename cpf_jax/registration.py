@@ -323,6 +323,16 @@ class Alignment(NamedTuple):
     score: float  # mean colour edge under the depth edges moved by ``shift``, in [0, 1]
     score_at_zero: float  # the same without a shift
     edge_pixels: int  # depth edge pixels the scores rest on
+    score_mirrored: float  # the best score of the depth flipped left-right
+
+    @property
+    def mirrored(self) -> bool:
+        """Depth that lines up far better flipped left-right (a driver that mirrors one
+        stream): 15 % above the best unflipped score, on enough edge pixels."""
+        return (
+            self.edge_pixels >= MIN_EDGE_PIXELS
+            and self.score_mirrored > ALIGNMENT_MARGIN * self.score
+        )
 
     @property
     def misaligned(self) -> bool:
@@ -366,12 +376,15 @@ def check_alignment(colour: Array, depth: Array, max_shift: int | None = None) -
     """The shift between depth edges and colour edges over ``K`` frames (``colour [K, H, W,
     3] uint8``, registered ``depth [K, H, W]`` mm): ``kernels.alignment``'s scores, summed
     over the frames by their depth edge pixels, searched up to ``max_shift`` px (default
-    a 32nd of the width, at least 8). Registered depth shows ``shift == (0, 0)``."""
+    a 32nd of the width, at least 8), and the same for the depth flipped left-right.
+    Registered depth shows ``shift == (0, 0)``."""
     colour, depth = np.asarray(colour), np.asarray(depth)
     if colour.ndim == 3:
         colour, depth = colour[None], depth[None]
     s = max(8, colour.shape[2] // 32) if max_shift is None else int(max_shift)
     total, n = _summed_scores(jnp.asarray(colour), jnp.asarray(depth), s)
+    flipped, _ = _summed_scores(jnp.asarray(colour), jnp.asarray(depth[:, :, ::-1]), s)
     total = np.asarray(total)
     dy, dx = np.unravel_index(int(np.argmax(total)), total.shape)
-    return Alignment((int(dx) - s, int(dy) - s), float(total.max()), float(total[s, s]), int(n))
+    best, zero, mirrored = float(total.max()), float(total[s, s]), float(np.max(flipped))
+    return Alignment((int(dx) - s, int(dy) - s), best, zero, int(n), mirrored)

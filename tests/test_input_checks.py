@@ -82,8 +82,15 @@ def test_depth_units_from_dtype_and_range():
     assert mm.dtype == np.uint16 and note is None
     raw = np.array([[1234, 0]], np.uint16)
     assert depth_millimetres(raw, "f")[0] is raw
-    with pytest.raises(SourceError, match="f: the median depth is 12500"):
-        depth_millimetres(np.full((2, 2), 12500 * 2, np.uint16) // 2, "f")  # TUM: 2.5 m
+    with pytest.raises(SourceError, match="f: the median depth is 12.5 m when read as mm"):
+        depth_millimetres(np.full((2, 2), 12500, np.uint16), "f")  # TUM's 2.5 m
+    with pytest.raises(SourceError, match="the median depth is 0.12 m .* --depth-scale N"):
+        depth_millimetres(np.full((2, 2), 120, np.uint8), "f")  # 8-bit, or centimetres
+    mm, note = depth_millimetres(np.full((2, 2), 12500, np.uint16), "f", per_metre=5000)
+    np.testing.assert_array_equal(mm, 2500)
+    assert note is None  # the units were given, not guessed
+    with pytest.raises(SourceError, match="int16 depth from -3 to 900 does not fit"):
+        depth_millimetres(np.array([[-3, 900]], np.int16), "f")  # uint16 saved as int16
     with pytest.raises(SourceError, match="does not fit 16-bit"):
         depth_millimetres(np.array([[70000]], np.int32), "f")
     with pytest.raises(SourceError, match="must be a number image"):
@@ -104,6 +111,28 @@ def test_an_npz_in_tum_units_is_refused(seq, tmp_path):
     np.savez(path, colour=seq.colour[:2], depth=(seq.depth[:2] * 5).astype(np.uint16))
     with pytest.raises(SourceError, match="tum.npz: 'depth': the median depth is"):
         NpzSource(path).read(0)
+
+
+def test_depth_in_another_unit_is_refused_then_read_at_the_scale_given(seq, tmp_path, capsys):
+    path = Path(to_folder(seq, tmp_path / "tum_units"))
+    for p in sorted((path / "depth").iterdir()):
+        cv2.imwrite(str(p), (seq.depth[int(p.stem)].astype(np.uint32) * 5).astype(np.uint16))
+    assert main([str(path), "--model", "rgbd", "--no-progress"]) == 2
+    assert "--depth-scale N" in _one_error_line(capsys)
+    source = open_source(str(path), depth_scale=5000)
+    np.testing.assert_array_equal(source.read(3).depth, seq.depth[3])
+
+
+@pytest.mark.parametrize(
+    ("spec", "scale", "message"),
+    [
+        ("walk_towards", 1000, "not to a synthetic source, whose units are known"),
+        ("walk_towards", -1, "finite number > 0"),
+    ],
+)
+def test_a_depth_scale_where_it_cannot_apply_is_an_error(spec, scale, message):
+    with pytest.raises(SourceError, match=message):
+        open_source(spec, depth_scale=scale)
 
 
 def test_a_folder_of_float_depth_images_is_read_in_millimetres(seq, tmp_path):
@@ -177,6 +206,18 @@ def test_depth_that_does_not_line_up_with_colour_is_found(seq):
     off = check_alignment(seq.colour[:2], _shifted(seq.depth[:2], 8))
     assert off.shift == (8, 0) and off.misaligned, off
     assert "8 px left of the colour edges" in off.describe()
+    assert not aligned.mirrored and not off.mirrored
+    flipped = check_alignment(seq.colour[:2], seq.depth[:2, :, ::-1])
+    assert flipped.mirrored and flipped.score_mirrored > 2 * flipped.score, flipped
+
+
+def test_the_command_line_warns_when_depth_is_mirrored(seq, tmp_path):
+    path = Path(to_folder(seq, tmp_path / "mirrored"))
+    for p in (path / "depth").iterdir():
+        cv2.imwrite(str(p), seq.depth[int(p.stem)][:, ::-1].copy())
+    args = build_parser().parse_args([str(path), "--model", "rgbd", "--background", "2"])
+    with pytest.warns(InputWarning, match="lines up with the colour only when flipped"):
+        open_inputs(args, open_source(str(path)))
 
 
 def test_the_real_recordings_depth_lies_beside_its_colour_without_the_fitted_offset():
@@ -194,7 +235,7 @@ def test_the_real_recordings_depth_lies_beside_its_colour_without_the_fitted_off
         calib = calibration_from_dict({**fitted, "offset_px": offset})
         depth = np.stack([np.asarray(register_depth(f.depth, calib)) for f in frames])
         found = check_alignment(colour, depth)
-        assert found.misaligned is misaligned, found
+        assert found.misaligned is misaligned and not found.mirrored, found
         if misaligned:
             assert 9 <= found.shift[0] <= 12 and abs(found.shift[1]) <= 3, found
 
@@ -320,3 +361,57 @@ def test_one_call_keeps_compiled_programs_for_the_next_run(monkeypatch, tmp_path
     finally:
         for k, v in before.items():
             jax.config.update(k, v)
+
+
+# ---------------------------------------------------------------------- ground truth, files
+
+
+def _gt_warnings(boxes, size=(512, 424)) -> list[str]:
+    from cpf_jax.io.groundtruth import check_groundtruth
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_groundtruth(np.asarray(boxes, np.float32), None, size, "gt")
+    return [str(w.message) for w in caught]
+
+
+def test_ground_truth_in_another_convention_is_named(seq):
+    assert _gt_warnings(seq.boxes) == []
+    corners = seq.boxes.copy()
+    corners[:, 2:] += corners[:, :2]
+    corners = np.concatenate([corners, corners + 1])  # 8 lines
+    (said,) = _gt_warnings(corners)
+    assert "every ground-truth box has w > x and h > y" in said
+    (said,) = _gt_warnings(seq.boxes * 3.0)  # boxes of an image three times the size
+    assert "lie more than half outside the 512x424 image" in said and "frame" in said
+
+
+def test_a_polygon_ground_truth_names_itself(tmp_path):
+    from cpf_jax.io.groundtruth import load_groundtruth
+
+    (tmp_path / "gt.txt").write_text("10,20,50,20,50,90,10,90\n")
+    with pytest.raises(SourceError, match=r"gt.txt:1: 8 numbers, a polygon"):
+        load_groundtruth(tmp_path / "gt.txt")
+
+
+def test_a_calibration_file_the_tracker_cannot_read_is_not_ignored_silently(seq, tmp_path):
+    import json
+
+    path = Path(to_folder(seq, tmp_path / "calib"))
+    (path / "calibration.json").write_text(json.dumps({"depth_to_colour": [[1, 0], [0, 1]]}))
+    args = build_parser().parse_args([str(path), "--background", "2"])
+    with pytest.warns(InputWarning, match="calibration.json: neither a registration"):
+        open_inputs(args, open_source(str(path)))
+
+
+def test_python_m_cpf_jax_cli_is_the_command(tmp_path):
+    import subprocess
+    import sys
+
+    run = subprocess.run(
+        [sys.executable, "-m", "cpf_jax.cli", str(tmp_path / "missing")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 2 and "no such file or directory" in run.stderr, run.stderr

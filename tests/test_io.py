@@ -248,7 +248,7 @@ def test_npz_source_and_load_all(tmp_path):
         ),
         (
             {"colour": np.zeros((2, 3, 3, 3), np.uint8), "depth": np.full((2, 3, 3), -5, np.int32)},
-            "int32 depth from -5 to -5 does not fit 16-bit millimetres",
+            "int32 depth from -5 to 0 does not fit 16-bit millimetres",
         ),
     ],
 )

@@ -29,8 +29,14 @@ def test_the_calibration_examples_are_read_as_documented():
     assert tuple(calib.depth_size) == (640, 480) and calib.colour.cx == 308.6
 
 
+def test_the_alignment_example_finds_the_shift_it_says(capsys):
+    (example,) = [b for b in _blocks("python") if "check_alignment" in b]
+    exec(compile(example, "docs/recordings.md", "exec"), {})
+    assert capsys.readouterr().out.startswith("(8, 0) True depth edges lie 8 px left of")
+
+
 def test_the_minimal_example_folder_is_tracked(tmp_path, monkeypatch, capsys):
-    (example,) = _blocks("python")
+    (example,) = [b for b in _blocks("python") if "example_recording" in b]
     monkeypatch.chdir(tmp_path)
     exec(compile(example, "docs/recordings.md", "exec"), {})
     source = open_source("example_recording")

@@ -129,6 +129,8 @@ def _run(args: argparse.Namespace) -> int:
         raise UsageError(f"--particles must be >= 1, got {args.particles}")
     if args.sigma is not None and not 0 < args.sigma < float("inf"):
         raise UsageError(f"--sigma must be a finite number > 0, got {args.sigma}")
+    if args.depth_scale is not None and not 0 < args.depth_scale < float("inf"):
+        raise UsageError(f"--depth-scale must be a finite number > 0, got {args.depth_scale}")
     if args.max_frames is not None and args.max_frames < 1:
         raise UsageError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.plot is not None and Path(args.plot).suffix.lower() != ".png":
@@ -143,7 +145,7 @@ def _run(args: argparse.Namespace) -> int:
 
     from cpf_jax.io import open_source
 
-    source = open_source(args.path)
+    source = open_source(args.path, depth_scale=args.depth_scale)
     with source:  # a camera is stopped, a file closed, however the run ends
         return _track(args, source, options)
 

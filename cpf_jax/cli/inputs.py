@@ -43,6 +43,7 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     """Calibration, registration, start frame and box, background model, ``--init auto``
     and ``--max-frames``, for a recording or a live stream."""
     from cpf_jax.io.base import LiveSource
+    from cpf_jax.io.groundtruth import check_groundtruth
 
     live = isinstance(source, LiveSource)
     calib = _calibration(args, source)
@@ -69,6 +70,8 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     except StopIteration:
         raise UsageError(f"{source.describe()}: no frame to track") from None
     check_box(box, source.size, source.describe())
+    if not live and source.gt_boxes is not None:
+        check_groundtruth(source.gt_boxes, source.visible, source.size, source.describe())
     _check_depth(args, source, start, first)
     if uses_depth:
         _check_alignment([first, *(bg_frames or [])[:4]], source.describe())
@@ -83,7 +86,7 @@ def _check_depth(args: argparse.Namespace, source, start: int, first) -> None:
     needs += ["--points"] if args.points is not None else []
     if not needs:
         return
-    if getattr(source, "has_depth", True) is False:
+    if not source.has_depth:
         why = "has no depth images (colour only)"
     elif not np.any(first.depth):
         why = f"has no depth at frame {start} (every pixel is 0, i.e. missing)"
@@ -106,7 +109,16 @@ def _check_alignment(frames: list, where: str) -> None:
     if colour.shape[1:3] != depth.shape[1:]:
         return  # the colour layer alone, on raw depth of another size
     found = check_alignment(colour, depth)
-    if found.misaligned:
+    if found.mirrored:
+        warnings.warn(
+            f"{where}: the depth lines up with the colour only when flipped left-right (edge "
+            f"score {found.score_mirrored:.2f} flipped, {found.score:.2f} as given in "
+            f"{len(frames)} frames): one of the two streams is mirrored; flip the depth "
+            "images (or the colour) so that both show the scene the same way round",
+            InputWarning,
+            stacklevel=2,
+        )
+    elif found.misaligned:
         dx, dy = found.shift
         warnings.warn(
             f"{where}: {found.describe()} in {len(frames)} frames: the depth is not "
@@ -332,15 +344,23 @@ def _calibration(args: argparse.Namespace, source):
     other file that is not in the registration format is ignored by the colour model and
     an error for the RGB-D models.
     """
+    from cpf_jax.errors import InputWarning
     from cpf_jax.registration import CalibrationError, calibration_from_dict, load_calibration
 
     if args.calib is not None:
         return load_calibration(args.calib)
     if not getattr(source, "calibration", None):
         return None
-    if not {"format", "depth"} & set(source.calibration):
-        return None  # intrinsics only: registered depth (io.folders.intrinsics_from_calibration)
     where = f"{source.path}/calibration.json" if source.path is not None else "calibration"
+    if not {"format", "depth"} & set(source.calibration):
+        if source.intrinsics is None:
+            warnings.warn(
+                f"{where}: neither a registration (keys 'format', 'depth', ...) nor "
+                "intrinsics ('intrinsics' or 'K'), so it is not used (docs/recordings.md)",
+                InputWarning,
+                stacklevel=2,
+            )
+        return None  # intrinsics only: registered depth (io.folders.intrinsics_from_calibration)
     try:
         return calibration_from_dict(source.calibration, source=where)
     except CalibrationError:

@@ -241,6 +241,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="depth-to-colour calibration JSON (default: the folder's calibration.json)",
     )
     p.add_argument(
+        "--depth-scale",
+        type=float,
+        default=None,
+        metavar="N",
+        help="stored depth values per metre of a folder or .npz (1000: mm, 5000: TUM, 1: "
+        "metres; default: the format's own, else detected from the values, with a note)",
+    )
+    p.add_argument(
         "--background",
         default="auto",
         help="background frames for the RGB-D models: 'auto' (default: up to 25 frames with "

@@ -55,11 +55,16 @@ class FrameSource:
     * ``visible``: ``[T] bool``.
     * ``intrinsics``: :class:`~cpf_jax.types.Intrinsics` of the colour camera.
     * ``calibration``: a dict read from ``calibration.json`` (or similar).
+    * ``depth_scale``: stored depth values per metre for sources that read depth files
+      (folders, ``.npz``); None: the format's own or detected (see
+      :func:`~cpf_jax.io.images.depth_millimetres`).
 
     Subclasses implement ``_read(i) -> Frame`` and set ``names``.
     """
 
     kind: str = "frames"
+    depth_scale: float | None = None
+    has_depth: bool = True  # False: a colour-only source, whose depth frames are zeros
 
     def __init__(
         self,
@@ -185,6 +190,7 @@ class LiveSource:
     """
 
     kind: str = "live"
+    has_depth = True
     names = None
     gt_boxes = None
     visible = None

@@ -84,6 +84,10 @@ class NpzSource(FrameSource):
         )
         self._size = (int(shape[2]), int(shape[1]))
 
+    @property
+    def has_depth(self) -> bool:
+        return "depth" in self._npz.files
+
     def _header_shape(self, key: str) -> tuple[int, ...]:
         # Read only the .npy header, not the data.
         fmt = np.lib.format
@@ -104,7 +108,8 @@ class NpzSource(FrameSource):
                 )
             self._colour = colour
             if "depth" in self._npz.files:
-                depth, note = depth_millimetres(self._npz["depth"], f"{self.path}: 'depth'")
+                where = f"{self.path}: 'depth'"
+                depth, note = depth_millimetres(self._npz["depth"], where, True, self.depth_scale)
                 if note is not None:
                     warnings.warn(note, InputWarning, stacklevel=2)
                 self._depth = depth
@@ -137,6 +142,7 @@ class VideoSource(FrameSource):
     """
 
     kind = "video"
+    has_depth = False
 
     def __init__(self, path: Path | str) -> None:
         path = Path(path)

@@ -43,13 +43,13 @@ from cpf_jax.errors import InputWarning, SourceError
 from cpf_jax.io.base import FrameSource
 from cpf_jax.io.groundtruth import load_groundtruth, load_occlusion
 from cpf_jax.io.images import (
+    TUM_PER_METRE,
     DepthDecoder,
     depth_millimetres,
     list_images,
     princeton_depth,
     read_colour,
     read_depth,
-    tum_depth,
 )
 from cpf_jax.types import Frame, Intrinsics
 
@@ -87,6 +87,7 @@ class ImageFolderSource(FrameSource):
         kind: str,
         path: Path,
         depth_decoder: DepthDecoder | None = None,
+        depth_scale: float | None = None,
         gt_boxes: np.ndarray | None = None,
         visible: np.ndarray | None = None,
         intrinsics: Intrinsics | None = None,
@@ -107,6 +108,7 @@ class ImageFolderSource(FrameSource):
         self.colour_paths = list(colour_paths)
         self.depth_paths = None if depth_paths is None else list(depth_paths)
         self.depth_decoder = depth_decoder
+        self.depth_scale = depth_scale
         self.occlusion = occlusion
         self._colour_shape: tuple[int, ...] | None = None
         self._depth_shape: tuple[int, ...] | None = None
@@ -130,7 +132,8 @@ class ImageFolderSource(FrameSource):
             shape = self._depth_shape or colour.shape[:2]
             return Frame(colour, np.zeros(shape, np.uint16))
         first = self._depth_shape is None
-        depth, note = depth_millimetres(read_depth(dpath, self.depth_decoder), str(dpath), first)
+        raw = read_depth(dpath, self.depth_decoder)
+        depth, note = depth_millimetres(raw, str(dpath), first, self.depth_scale)
         if note is not None and first:
             warnings.warn(f"{note} (and every depth image of {self.path})", InputWarning, 2)
         if first:
@@ -386,7 +389,7 @@ def open_tum(path: Path | str) -> ImageFolderSource:
                 k = min(near, key=lambda k: abs(d_t[k] - t))
                 if abs(d_t[k] - t) <= _TUM_MAX_DT:
                     depth_paths[i] = depth[k]
-    return ImageFolderSource(colour, depth_paths, kind="tum", path=path, depth_decoder=tum_depth)
+    return ImageFolderSource(colour, depth_paths, kind="tum", path=path, depth_scale=TUM_PER_METRE)
 
 
 def detect_folder_kind(path: Path | str) -> str:

@@ -21,7 +21,11 @@ import numpy as np
 
 from cpf_jax.errors import GroundTruthWarning, SourceError
 
-__all__ = ["load_groundtruth", "load_occlusion"]
+__all__ = ["load_groundtruth", "load_occlusion", "check_groundtruth"]
+
+# Corner pairs x1,y1,x2,y2 read as x,y,w,h give w > x and h > y on every line; boxes of a
+# target that moves about rarely do on this many lines.
+_CORNER_LINES_MIN = 5
 
 _SEP = re.compile(r"[,;\s]+")
 
@@ -36,6 +40,11 @@ def _parse_boxes(path: Path, lines: list[str]) -> tuple[np.ndarray, list[int]]:
             continue
         fields = [f for f in _SEP.split(text) if f]
         try:
+            if len(fields) == 8:
+                raise SourceError(
+                    f"{path}:{n}: 8 numbers, a polygon x1,y1,...,x4,y4 (as VOT writes): give "
+                    "one axis-aligned box 'x,y,w,h' per line"
+                )
             if len(fields) != 4:
                 raise ValueError
             rows.append([float(f) for f in fields])
@@ -86,6 +95,45 @@ def load_groundtruth(path: Path | str, one_based: bool = True) -> tuple[np.ndarr
         boxes[:, :2] -= 1.0
     boxes[~visible] = 0.0
     return boxes, visible
+
+
+def check_groundtruth(
+    boxes: np.ndarray, visible: np.ndarray | None, size: tuple[int, int], where: str
+) -> None:
+    """Warn (:class:`~cpf_jax.errors.GroundTruthWarning`) about boxes that read as another
+    convention: boxes more than half outside the ``size = (W, H)`` image (ground truth of
+    another image size, or corners), and files whose every box has ``w > x`` and ``h > y``
+    (corner pairs ``x1,y1,x2,y2``)."""
+    b = np.asarray(boxes, np.float64)
+    visible = (b[:, 2] > 0) & (b[:, 3] > 0) if visible is None else np.asarray(visible, bool)
+    b = b[visible]
+    if b.size == 0:
+        return
+    w, h = size
+    inside_w = np.clip(b[:, 0] + b[:, 2], 0, w) - np.clip(b[:, 0], 0, w)
+    inside_h = np.clip(b[:, 1] + b[:, 3], 0, h) - np.clip(b[:, 1], 0, h)
+    outside = np.flatnonzero(inside_w * inside_h < 0.5 * b[:, 2] * b[:, 3])
+    frames = np.flatnonzero(visible)
+    if outside.size:
+        i = outside[0]
+        warnings.warn(
+            GroundTruthWarning(
+                f"{where}: {outside.size} of {len(b)} ground-truth boxes lie more than half "
+                f"outside the {w}x{h} image (the first at frame {frames[i]}: "
+                f"{','.join(f'{v:g}' for v in b[i])}): boxes for another image size, or "
+                "corners x1,y1,x2,y2 rather than x,y,w,h?"
+            ),
+            stacklevel=2,
+        )
+    elif len(b) >= _CORNER_LINES_MIN and np.all((b[:, 2] > b[:, 0]) & (b[:, 3] > b[:, 1])):
+        warnings.warn(
+            GroundTruthWarning(
+                f"{where}: every ground-truth box has w > x and h > y, as corners "
+                "x1,y1,x2,y2 read as x,y,w,h do: if the file holds corners, write x,y,w,h "
+                "(w = x2 - x1, h = y2 - y1)"
+            ),
+            stacklevel=2,
+        )
 
 
 def load_occlusion(path: Path | str) -> list[str]:

@@ -31,11 +31,15 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tif
 
 DepthDecoder = Callable[[np.ndarray], np.ndarray]
 
+TUM_PER_METRE = 5000.0  # TUM RGB-D's depth PNGs: 5,000 per metre
+
 # Floating-point depth whose largest value is at most this is in metres (no room of people
 # is 20 mm deep; no depth camera sees 20 m).
 _METRES_MAX = 20.0
-# Integer millimetres whose median is above this (8 m, beyond the range depth cameras
-# measure people at) are in another unit (TUM's 5,000 per metre puts a wall at 2 m at 10,000).
+# Millimetres whose median is outside this range (0.2-8 m, where depth cameras measure
+# people) are in another unit: TUM's 5,000 per metre puts a wall at 2 m at 10,000, and
+# 8-bit or centimetre depth puts it under 256.
+_MM_MEDIAN_MIN = 200.0
 _MM_MEDIAN_MAX = 8000.0
 
 
@@ -97,54 +101,73 @@ def read_depth(path: Path | str, decode: DepthDecoder | None = None) -> np.ndarr
 
 
 def depth_millimetres(
-    depth: np.ndarray, where: str, check_median: bool = True
+    depth: np.ndarray, where: str, check_median: bool = True, per_metre: float | None = None
 ) -> tuple[np.ndarray, str | None]:
     """``(uint16 mm, note)``: depth in the units it came in, as the filters read it.
 
-    ``uint16`` is millimetres already (note None); floating-point depth is metres when its
-    largest finite value is at most 20, else millimetres, rounded, with NaN and inf as
-    missing (0); other integers are millimetres when they fit 16 bits. ``note`` says what
-    was converted.
+    ``per_metre`` (stored values per metre: 1000 for mm, 5000 for TUM, 1 for metres) scales
+    any number type to millimetres. Without it the units are detected: ``uint16`` is
+    millimetres already (note None); floating-point depth is metres when its largest finite
+    value is at most 20, else millimetres; other integers are millimetres when they fit 16
+    bits. NaN, inf and values <= 0 are missing (0); ``note`` says what was detected and
+    converted (None when nothing was guessed).
 
     Raises:
       SourceError: naming ``where``, for depth that is not a number type, that does not
         fit 16-bit millimetres, or (``check_median``; a source checks its first frame)
-        whose median (over 8 m) says another unit.
+        whose median (under 0.2 m or over 8 m) says another unit.
     """
     depth = np.asarray(depth)
+    if not (np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)):
+        raise SourceError(f"{where}: depth must be a number image (mm or m), got {depth.dtype}")
     note = None
-    if np.issubdtype(depth.dtype, np.floating):
-        finite = np.isfinite(depth)
-        valid = finite & (depth > 0)
+    if per_metre is not None:
+        depth, _ = _scaled_mm(depth, where, 1000.0 / per_metre)
+    elif np.issubdtype(depth.dtype, np.floating):
+        valid = np.isfinite(depth) & (depth > 0)
         top = float(depth[valid].max()) if valid.any() else 0.0
         metres = top <= _METRES_MAX
-        scale = 1000.0 if metres else 1.0
-        if top * scale > np.iinfo(np.uint16).max:
-            raise SourceError(
-                f"{where}: depth up to {top:g} does not fit 16-bit millimetres (expected "
-                "metres up to 20 or millimetres up to 65535)"
-            )
         unit = "metres" if metres else "millimetres"
         note = f"{where}: {depth.dtype} depth read as {unit} (largest {top:g}), kept as uint16 mm"
-        depth = np.where(valid, np.rint(np.where(finite, depth, 0.0) * scale), 0).astype(np.uint16)
-    elif np.issubdtype(depth.dtype, np.integer) and depth.dtype != np.uint16:
-        lo, hi = (int(depth.min()), int(depth.max())) if depth.size else (0, 0)
-        if lo < 0 or hi > np.iinfo(np.uint16).max:
-            raise SourceError(
-                f"{where}: {depth.dtype} depth from {lo} to {hi} does not fit 16-bit millimetres"
-            )
-        depth = depth.astype(np.uint16)
+        depth, _ = _scaled_mm(depth, where, 1000.0 if metres else 1.0)
     elif depth.dtype != np.uint16:
-        raise SourceError(f"{where}: depth must be a number image (mm or m), got {depth.dtype}")
-    valid = depth[depth > 0] if check_median else depth[:0]
-    median = float(np.median(valid)) if valid.size else 0.0
-    if median > _MM_MEDIAN_MAX:
-        raise SourceError(
-            f"{where}: the median depth is {median:g}, i.e. {median / 1000:g} m if millimetres: "
-            "the values are in another unit (TUM stores 5,000 per metre: give the folder its "
-            "rgb.txt and depth.txt to be read as TUM); convert them to millimetres"
-        )
+        depth, _ = _scaled_mm(depth, where, 1.0)
+    if check_median:
+        _check_median(depth, where, per_metre)
     return depth, note
+
+
+def _scaled_mm(depth: np.ndarray, where: str, mm_per_value: float) -> tuple[np.ndarray, float]:
+    """``depth * mm_per_value`` rounded to ``uint16`` mm (non-finite and <= 0 missing),
+    and the largest stored value; depth beyond 65,535 mm, and negative integers (no
+    integer format marks missing depth so), are refused, not wrapped."""
+    valid = np.isfinite(depth) & (depth > 0)
+    top = float(depth[valid].max()) if valid.any() else 0.0
+    low = int(depth.min()) if np.issubdtype(depth.dtype, np.integer) and depth.size else 0
+    if top * mm_per_value > np.iinfo(np.uint16).max or low < 0:
+        raise SourceError(
+            f"{where}: {depth.dtype} depth from {min(low, 0):g} to {top:g} does not fit "
+            f"16-bit millimetres at {mm_per_value:g} mm per stored value"
+        )
+    mm = np.rint(np.where(valid, depth, 0).astype(np.float64) * mm_per_value)
+    return mm.astype(np.uint16), top
+
+
+def _check_median(depth_mm: np.ndarray, where: str, per_metre: float | None) -> None:
+    """Refuse depth whose median valid value, read as mm, is nearer than any depth camera
+    sees a person (0.2 m) or farther than it measures one (8 m): another unit."""
+    valid = depth_mm[depth_mm > 0]
+    if valid.size == 0:
+        return
+    median = float(np.median(valid))
+    if _MM_MEDIAN_MIN <= median <= _MM_MEDIAN_MAX:
+        return
+    read = f"at {per_metre:g} per metre" if per_metre is not None else "as mm"
+    raise SourceError(
+        f"{where}: the median depth is {median / 1000:g} m when read {read}, outside "
+        "0.2-8 m: the values are in another unit. Give the stored values per metre with "
+        "--depth-scale N (open_source(..., depth_scale=N); TUM: 5000, metres: 1)"
+    )
 
 
 def princeton_depth(raw: np.ndarray) -> np.ndarray:
@@ -155,4 +178,4 @@ def princeton_depth(raw: np.ndarray) -> np.ndarray:
 
 def tum_depth(raw: np.ndarray) -> np.ndarray:
     """TUM RGB-D depth: 5,000 per metre, i.e. 5 per millimetre; rounded to whole mm."""
-    return np.round(raw.astype(np.float32) / 5.0).astype(np.uint16)
+    return _scaled_mm(raw, "TUM depth", 1000.0 / TUM_PER_METRE)[0]

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from cpf_jax.errors import SourceError
 from cpf_jax.io.base import FrameSource, LiveSource
 from cpf_jax.io.cameras import KinectV2Source, RealSenseSource
 from cpf_jax.io.files import VIDEO_SUFFIXES, NpzSource, VideoSource
-from cpf_jax.io.folders import open_folder
+from cpf_jax.io.folders import ImageFolderSource, open_folder
 from cpf_jax.io.synthetic import open_synthetic
 
 __all__ = ["open_source", "CAMERA_NAMES", "REALSENSE_SUFFIXES"]
@@ -19,7 +20,9 @@ CAMERA_NAMES = ("realsense", "kinect2", "kinect")
 REALSENSE_SUFFIXES = (".bag", ".db3")
 
 
-def open_source(spec: str | Path, kind: str | None = None) -> FrameSource | LiveSource:
+def open_source(
+    spec: str | Path, kind: str | None = None, depth_scale: float | None = None
+) -> FrameSource | LiveSource:
     """Open frames from a path, a camera name or a synthetic scenario name.
 
     * a folder: its layout is detected from its content (``tum``, ``princeton``,
@@ -29,11 +32,30 @@ def open_source(spec: str | Path, kind: str | None = None) -> FrameSource | Live
     * any other name that is not an existing path: a synthetic scenario from
       ``cpf_jax.synthetic`` (an existing path with the same name wins).
 
+    ``depth_scale`` (stored depth values per metre: 1000 for mm, 5000 for TUM, 1 for
+    metres) overrides the units a folder or ``.npz`` source reads its depth in, which are
+    otherwise its format's own or detected from the values.
+
     Raises:
       SourceError: one line naming what was asked for and what is wrong
       (:class:`~cpf_jax.errors.CameraUnavailable` for cameras).
     """
-    text = str(spec)
+    source = _open(str(spec), kind)
+    if depth_scale is not None:
+        if not (math.isfinite(depth_scale) and depth_scale > 0):
+            raise SourceError(f"depth scale must be a finite number > 0, got {depth_scale}")
+        if not isinstance(source, (ImageFolderSource, NpzSource)):
+            raise SourceError(
+                f"{source.describe()}: a depth scale applies to depth read from files "
+                f"(image folders, .npz), not to a {source.kind} source, whose units are known"
+            )
+        if not source.has_depth:
+            raise SourceError(f"{source.describe()}: a depth scale given, but it has no depth")
+        source.depth_scale = float(depth_scale)
+    return source
+
+
+def _open(text: str, kind: str | None) -> FrameSource | LiveSource:
     camera, _, serial = text.partition(":")
     if camera.lower() in CAMERA_NAMES and not Path(text).exists():
         if camera.lower() == "realsense":
