@@ -347,6 +347,7 @@ def test_cli_points_joints_needs_a_synthetic_scenario(tmp_path, capsys):
     [
         (["--points", "1,2;3"], "--points expects"),
         (["--points", "900,10"], "outside"),
+        (["--points", "5,5"], "5,5 outside the start box"),  # on the room, not the body
         (["--points", "joints", "--point-particles", "0"], "--point-particles"),
     ],
 )

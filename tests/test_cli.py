@@ -393,7 +393,9 @@ def camera(monkeypatch):
         cam = _FakeCamera(
             frames, (frames[0].colour.shape[1], frames[0].colour.shape[0]), interrupt_after
         ).camera
-        monkeypatch.setattr(cpf_jax.io, "open_source", lambda spec, kind=None, depth_scale=None: cam)
+        monkeypatch.setattr(
+            cpf_jax.io, "open_source", lambda spec, kind=None, depth_scale=None: cam
+        )
         made.append(cam)
         return cam
 

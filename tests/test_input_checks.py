@@ -67,6 +67,25 @@ def test_a_folder_whose_depth_is_all_missing_is_an_error(seq, folder, tmp_path, 
     assert "every pixel is 0, i.e. missing" in _one_error_line(capsys)
 
 
+def test_a_recording_whose_depth_starts_late_says_where(seq, tmp_path, capsys):
+    late = tmp_path / "late"
+    to_folder(seq, late)
+    for p in sorted((late / "depth").iterdir())[:2]:  # a camera warming up
+        cv2.imwrite(str(p), np.zeros(seq.depth.shape[1:], np.uint16))
+    argv = [str(late), "--model", "rgbd", "--background", "2:4", "--start", "0"]
+    assert main([*argv, "--no-progress"]) == 2
+    assert "its depth starts at frame 2: start there with --start 2" in _one_error_line(capsys)
+
+
+def test_a_blank_start_frame_says_where_the_picture_starts(seq, tmp_path, capsys):
+    dark = tmp_path / "dark"
+    to_folder(seq, dark)
+    cv2.imwrite(str(sorted((dark / "rgb").iterdir())[0]), np.zeros(seq.colour.shape[1:], np.uint8))
+    assert main([str(dark), "--start", "0", "--no-progress"]) == 2
+    line = _one_error_line(capsys)
+    assert "frame 0 is blank (every pixel RGB 0,0,0)" in line and "--start 1" in line
+
+
 # ------------------------------------------------------------------------------ depth units
 
 
@@ -415,3 +434,12 @@ def test_python_m_cpf_jax_cli_is_the_command(tmp_path):
         timeout=120,
     )
     assert run.returncode == 2 and "no such file or directory" in run.stderr, run.stderr
+
+
+def test_a_background_longer_than_the_recording_is_announced(folder):
+    args = build_parser().parse_args([str(folder), "--model", "rgbd", "--background", "0:40"])
+    note = open_inputs(args, open_source(str(folder))).note
+    assert (
+        note == "background: --background 0:40 asks for 40 frames, the recording has 4; "
+        "the median of frames 0-3"
+    )

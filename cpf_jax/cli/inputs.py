@@ -72,6 +72,7 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     check_box(box, source.size, source.describe())
     if not live and source.gt_boxes is not None:
         check_groundtruth(source.gt_boxes, source.visible, source.size, source.describe())
+    _check_colour(source, start, first)
     _check_depth(args, source, start, first)
     if uses_depth:
         _check_alignment([first, *(bg_frames or [])[:4]], source.describe())
@@ -90,11 +91,47 @@ def _check_depth(args: argparse.Namespace, source, start: int, first) -> None:
         why = "has no depth images (colour only)"
     elif not np.any(first.depth):
         why = f"has no depth at frame {start} (every pixel is 0, i.e. missing)"
+        later = _first_where(source, start + 1, lambda f: np.any(f.depth))
+        if later is not None:
+            raise UsageError(
+                f"{' and '.join(needs)} read depth, but {source.describe()} {why}; its "
+                f"depth starts at frame {later}: start there with --start {later}"
+            )
     else:
         return
     raise UsageError(
         f"{' and '.join(needs)} read depth, but {source.describe()} {why}; "
         "track the colour alone with --model rgb and no --points"
+    )
+
+
+def _first_where(source, begin: int, test, look: int = 300) -> int | None:
+    """The first frame from ``begin`` (of the next ``look``) that passes ``test(frame)``,
+    for a recording; None for a live stream or when none does."""
+    from cpf_jax.io.base import LiveSource
+
+    if isinstance(source, LiveSource):
+        return None
+    return next(
+        (i for i in range(begin, min(len(source), begin + look)) if test(source.read(i))), None
+    )
+
+
+def _check_colour(source, start: int, first) -> None:
+    """A blank start frame (one colour throughout: a camera warming up, a fade) is one error
+    line naming the first frame that is not, since the box's appearance is learnt there."""
+    if np.ptp(first.colour) > 0:
+        return
+    value = ",".join(str(int(v)) for v in first.colour[0, 0])
+    later = _first_where(source, start + 1, lambda f: np.ptp(f.colour) > 0)
+    hint = (
+        f"frame {later} is the first that is not: start there with --start {later}"
+        if later is not None
+        else "none of the next 300 frames is otherwise"
+    )
+    raise UsageError(
+        f"{source.describe()} frame {start} is blank (every pixel RGB {value}), so the box's "
+        f"colour cannot be learnt there; {hint}"
     )
 
 
@@ -150,9 +187,22 @@ def _open_recording(args, source, register, need_bg: bool, auto: bool):
         elif args.background == "auto":
             bg_frames, note = quiet_background(read, parse_background("auto", n_frames))
         else:
-            bg_frames = [read(i) for i in parse_background(args.background, n_frames)]
+            indices = parse_background(args.background, n_frames)
+            bg_frames = [read(i) for i in indices]
+            note = _clamped_background(args.background, indices, n_frames)
     frames = ((i, read(i)) for i in range(start, n_frames))
     return start, box, bg_frames, frames, note
+
+
+def _clamped_background(text: str, indices: list[int], n_frames: int) -> str | None:
+    """A note when ``--background N`` or ``A:B`` asked for frames the recording lacks."""
+    asked = int(text) if ":" not in text else int(text.split(":")[1]) - int(text.split(":")[0])
+    if asked <= len(indices):
+        return None
+    return (
+        f"background: --background {text} asks for {asked} frames, the recording has "
+        f"{n_frames}; the median of frames {ranges(indices)}"
+    )
 
 
 def _median_background(frames):

@@ -99,6 +99,8 @@ def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -
     else:
         points, names = parse_points(args.points, source, inputs.start)
         points = check_points(points, (source.size[1], source.size[0]))
+        if args.points != "joints":
+            _check_points_in_box(points, inputs.box, inputs.start)
     params = default_cascade_params(config)._replace(box=box_params)
     if args.points in ("joints", "auto"):  # head, hands, feet: the joints lie behind
         offset = jnp.asarray(JOINT_DEPTH_OFFSET_MM, jnp.float32)
@@ -127,6 +129,25 @@ def _guessed_intrinsics(source):
         stacklevel=2,
     )
     return k
+
+
+def _check_points_in_box(points: np.ndarray, box: np.ndarray, start: int) -> None:
+    """Points given as ``x,y`` lie in the start box (a tenth of its size of slack): layer 2
+    tracks points on the body inside layer 1's box, not on the scene around it."""
+    x, y, w, h = (float(v) for v in box)
+    slack_x, slack_y = 0.1 * w, 0.1 * h
+    inside = (
+        (points[:, 0] >= x - slack_x)
+        & (points[:, 0] <= x + w + slack_x)
+        & (points[:, 1] >= y - slack_y)
+        & (points[:, 1] <= y + h + slack_y)
+    )
+    if not inside.all():
+        shown = "; ".join(f"{px:g},{py:g}" for px, py in points[~inside])
+        raise UsageError(
+            f"--points: {shown} outside the start box {x:g},{y:g},{w:g},{h:g} (frame {start}); "
+            "layer 2 tracks points on the body inside layer 1's box"
+        )
 
 
 def _auto_points(config, inputs: Inputs, background):
