@@ -20,6 +20,7 @@ from cpf_jax.synthetic import make_sequence, to_folder
 from cpf_jax.types import (
     KINECT_V2_DEPTH,
     Frame,
+    Intrinsics,
     check_frame,
     check_intrinsics,
     nominal_intrinsics,
@@ -443,3 +444,14 @@ def test_a_background_longer_than_the_recording_is_announced(folder):
         note == "background: --background 0:40 asks for 40 frames, the recording has 4; "
         "the median of frames 0-3"
     )
+
+
+def test_an_npz_camera_matrix_is_read_as_intrinsics(seq, tmp_path):
+    k = np.array([[365.0, 0, 255.0], [0, 366.0, 205.0], [0, 0, 1]])
+    np.savez(tmp_path / "k.npz", colour=seq.colour[:2], intrinsics=k)
+    assert NpzSource(tmp_path / "k.npz").intrinsics == Intrinsics(365.0, 366.0, 255.0, 205.0)
+
+
+def test_a_box_left_of_the_frame_is_read_as_a_value_not_an_option(folder, capsys):
+    assert main([str(folder), "--init", "-300,100,60,80", "--start", "0"]) == 2
+    assert "initial box -300,100,60,80 lies outside" in _one_error_line(capsys)

@@ -105,8 +105,30 @@ def _warn_line(message, category, filename, lineno, file=None, line=None, *, sho
         shown(message, category, filename, lineno, file, line)
 
 
+# Options whose value may start with "-" (a box or point left of the frame), which argparse
+# would otherwise take for an option.
+_SIGNED_VALUES = ("--init", "--points")
+
+
+def _join_signed_values(argv: list[str]) -> list[str]:
+    """``--init -30,100,60,80`` read as ``--init=-30,100,60,80``."""
+    out: list[str] = []
+    it = iter(argv)
+    for a in it:
+        if a in _SIGNED_VALUES:
+            value = next(it, None)
+            if value is not None and value.startswith("-") and value[1:2].isdigit():
+                out.append(f"{a}={value}")
+                continue
+            out.extend([a] if value is None else [a, value])
+        else:
+            out.append(a)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser().parse_args(_join_signed_values(argv))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", InputWarning)

@@ -4,7 +4,8 @@
   uint8`` RGB, optional ``depth [T, H', W']`` (``uint16`` mm,
   or floating-point metres or millimetres, converted by
   :func:`~cpf_jax.io.images.depth_millimetres` with a warning), ``boxes [T, 4]`` xywh
-  0-based, ``visible [T] bool`` and ``intrinsics [4]`` (fx, fy, cx, cy). NumPy
+  0-based, ``visible [T] bool`` and ``intrinsics [4]`` (fx, fy, cx, cy; or a 3x3
+  camera matrix). NumPy
   cannot memory-map arrays inside a zip, so each array is loaded whole on the
   first frame read.
 * video (``kind="video"``): anything ``cv2.VideoCapture`` opens; colour only.
@@ -71,9 +72,14 @@ class NpzSource(FrameSource):
             else:
                 visible = np.all(np.isfinite(boxes), 1) & (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
         if "intrinsics" in npz.files:
-            k = np.asarray(npz["intrinsics"], np.float64).ravel()
+            k = np.asarray(npz["intrinsics"], np.float64)
+            if k.shape == (3, 3):  # a camera matrix K
+                k = k[[0, 1, 0, 1], [0, 1, 2, 2]]
             if k.shape != (4,):
-                raise SourceError(f"{path}: 'intrinsics' must be [4] (fx, fy, cx, cy)")
+                raise SourceError(
+                    f"{path}: 'intrinsics' must be [4] (fx, fy, cx, cy) or a 3x3 camera "
+                    f"matrix, got shape {k.shape}"
+                )
             intrinsics = Intrinsics(*map(float, k))
         super().__init__(
             [f"{path.name}#{i}" for i in range(t)],
