@@ -32,6 +32,8 @@ import sys
 import time
 from pathlib import Path
 
+import host  # same folder: the CPU name
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 CHILD = """
@@ -137,13 +139,14 @@ def main() -> None:
         "rgbd_particles": args.rgbd_particles,
         "frames": 150,
         "cpus": os.cpu_count(),
+        "cpu": host.cpu_name(),
     }
     md = [
         "# Batch runs: one device vs several CPU devices",
         "",
         f"Regenerate with `python experiments/bench_batch.py`. {args.keys} filter seeds x "
         f"walk_across_medium (150 frames), colour filter N = {args.particles}; "
-        f"{os.cpu_count()} CPUs, load average {load:.1f} at the start; median of 3 timed runs. "
+        f"{host.describe()}, load average {load:.1f} at the start; median of 3 timed runs. "
         f"Grid-occlusion rows: the same {args.keys} seeds x occlusion_person (60 frames), "
         f"N = {args.rgbd_particles}.",
         "",

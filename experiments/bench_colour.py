@@ -126,12 +126,12 @@ if __name__ == "__main__" and ARGS.tune_xla:
 
 import datetime  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import subprocess  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
+import host  # noqa: E402  (same folder: the CPU name)
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -464,16 +464,6 @@ def time_table_pass(window: tuple[int, int], repeats: int = 50) -> dict:
 # ----------------------------------------------------------------------------- main
 
 
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def _variant_cell(r: dict, key: str) -> str:
     """A variant's ms per frame, with its windowed share when some steps fell back."""
     prefix = f"{key}_" if key else ""  # "": the default's own keys
@@ -736,7 +726,7 @@ def main(args) -> dict:
             print(f"table 3.2 {w}x{h}: " + " ".join(f"{v:.0f}" for v in fps), flush=True)
         results["table_3_2"] = table
     results["meta"] = {
-        "cpu": _cpu_name(),
+        "cpu": host.cpu_name(),
         "cores": os.cpu_count(),
         "jax": jax.__version__,
         "opencv": cv2.__version__,

@@ -29,6 +29,7 @@ import platform
 import time
 from pathlib import Path
 
+import host  # same folder: the CPU name
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -301,6 +302,7 @@ def main() -> None:
             "loadavg_after": [round(v, 2) for v in load_after],
             "cpu_count": os.cpu_count(),
             "machine": platform.processor() or platform.machine(),
+            "cpu": host.cpu_name(),
             "jax": jax.__version__,
         },
     }
@@ -322,7 +324,7 @@ def main() -> None:
         f"Window {WINDOW[0]} x {WINDOW[1]}, {n_body} body pixels (person at "
         f"{person_depth / 1000:.2f} m). `python experiments/bench_depth.py`; "
         f"load average before/after: {load_before[0]:.2f} / {load_after[0]:.2f} on "
-        f"{os.cpu_count()} cores. Times: {'best' if STAT == 'min' else 'median'} wall time "
+        f"{host.describe()}. Times: {'best' if STAT == 'min' else 'median'} wall time "
         f"of repeated calls, ours and baselines alike (medians in the JSON).",
         "",
         "| kernel | cpf_jax ms | baseline ms | speed-up | baseline |",

@@ -65,8 +65,9 @@ import json  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import bench_colour  # noqa: E402  (same folder: the timing loop and CPU name)
+import bench_colour  # noqa: E402  (same folder: the timing loop)
 import cv2  # noqa: E402
+import host  # noqa: E402  (same folder: the CPU name)
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -261,7 +262,7 @@ def main(args) -> dict:
         )
     results["meta"] = {
         "frame": f"512x424 walk_across_medium seed 0 frame {FRAME_INDEX}",
-        "cpu": bench_colour._cpu_name(),
+        "cpu": host.cpu_name(),
         "cores": os.cpu_count(),
         "jax": jax.__version__,
         "opencv": cv2.__version__,
