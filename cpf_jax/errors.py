@@ -13,6 +13,7 @@ __all__ = [
     "CameraUnavailable",
     "ViewerUnavailable",
     "OutputError",
+    "MemoryTooSmall",
     "InputWarning",
     "GroundTruthWarning",
 ]
@@ -36,6 +37,11 @@ class ViewerUnavailable(CpfJaxError):
 
 class OutputError(CpfJaxError):
     """An output file cannot be written (``RerunLogger``'s ``.rrd`` path)."""
+
+
+class MemoryTooSmall(CpfJaxError):
+    """A compiled filter needs more memory than the device has free (too many particles
+    for the frame size): refused before it runs, not killed by the system while it does."""
 
 
 class InputWarning(UserWarning):

@@ -350,8 +350,8 @@ def test_a_run_that_matches_nothing_prints_dashes_and_says_what_it_scored(folder
     assert "scored 4 of 4 tracked frames (0-3, the first being the start box)" in out
     assert "matched 0 (IoU >= 0.5)" in out
     # The compile is said, on stderr, as every note; stdout holds the results.
-    assert "cpf-track: compiling init (first call) ... " in err
-    assert "cpf-track: compiling step (first call) ... " in err
+    assert "cpf-track: compiling init ... " in err
+    assert "cpf-track: compiling step ... " in err
     assert "compiling" not in out and "note" not in out
 
 
@@ -455,3 +455,35 @@ def test_an_npz_camera_matrix_is_read_as_intrinsics(seq, tmp_path):
 def test_a_box_left_of_the_frame_is_read_as_a_value_not_an_option(folder, capsys):
     assert main([str(folder), "--init", "-300,100,60,80", "--start", "0"]) == 2
     assert "initial box -300,100,60,80 lies outside" in _one_error_line(capsys)
+
+
+# ----------------------------------------------------------------------------------- memory
+
+
+def test_the_memory_a_filter_needs_grows_with_its_particles_and_is_checked():
+    from cpf_jax import ColourConfig, build_colour_filter, default_colour_params
+    from cpf_jax.errors import MemoryTooSmall
+    from cpf_jax.memory import check_fits, needed_bytes
+
+    frame = Frame(np.zeros((48, 64, 3), np.uint8), np.zeros((48, 64), np.uint16))
+    box, key, params = np.array([10, 10, 8, 16], np.float32), jax.random.PRNGKey(0), None
+    needs = []
+    for n in (1_000, 100_000):
+        filt = build_colour_filter(ColourConfig(n_particles=n))
+        params = default_colour_params()
+        state = jax.eval_shape(filt.init, params, key, frame, box, None)
+        needs.append(needed_bytes(jax.jit(filt.step).lower(params, key, state, frame).compile()))
+    assert needs[1] > 10 * needs[0] > 0  # the particles, not the frame, dominate at 100k
+    check_fits(needs[1], "it", free=2 * needs[1])
+    with pytest.raises(MemoryTooSmall, match=r"it needs about .* GB by XLA's estimate"):
+        check_fits(needs[1], "it", free=needs[1])
+
+
+def test_too_many_particles_for_the_memory_is_one_line_before_tracking(folder, monkeypatch, capsys):
+    import cpf_jax.memory
+
+    monkeypatch.setattr(cpf_jax.memory, "free_bytes", lambda device=None: 10_000_000)
+    assert main([str(folder), "--particles", "100000", "--out", "x.csv", "--no-progress"]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith("cpf-track: error: --particles 100000 on 512x424 needs about")
+    assert "0.0 GB is free; about" in line and "particles fit" in line

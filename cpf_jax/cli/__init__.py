@@ -41,9 +41,10 @@ points' 3D errors when they are scored) at its end, or when it is interrupted.
 
 Results (the run's line, the metrics table, which frames it scores) go to stdout; notes,
 warnings (``cpf_jax.errors.InputWarning``: an input converted or guessed) and the compile
-time of the first ``init`` and ``step`` go to stderr. Exit codes: 0 success, 2 bad input
-(path, image, box, option, camera, viewer, a model that needs depth on a source without
-it, a guess too unsure to start from), 130 interrupted.
+time of ``init`` and ``step`` (compiled before the first frame) go to stderr. Exit codes:
+0 success, 2 bad input (path, image, box, option, camera, viewer, a model that needs depth
+on a source without it, a guess too unsure to start from, more particles than the free
+memory holds by XLA's estimate, :mod:`cpf_jax.memory`), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -139,6 +140,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("cpf-track: interrupted; results so far are on disk", file=sys.stderr)
         return 130
+    except Exception as e:  # XLA's own out-of-memory, past cpf_jax.memory's estimate
+        if type(e).__name__ != "JaxRuntimeError" or "RESOURCE_EXHAUSTED" not in str(e):
+            raise
+        return _fail(
+            "out of memory while tracking (XLA: RESOURCE_EXHAUSTED); use fewer --particles"
+        )
 
 
 def _run(args: argparse.Namespace) -> int:

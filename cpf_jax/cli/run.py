@@ -147,24 +147,24 @@ def _loop(args, source, inputs: Inputs, model: Model, sinks: Sinks, results: Res
     from cpf_jax.progress import Progress
     from cpf_jax.types import Frame
 
-    init, step = jax.jit(model.filt.init), jax.jit(model.filt.step)
     key = jax.random.PRNGKey(args.seed)
     bar = Progress(
         inputs.n_frames, label="tracking", interactive=False if args.no_progress else None
     )
+    first = inputs.first
+    box = jnp.asarray(inputs.box)
+    frame = Frame(jnp.asarray(first.colour), jnp.asarray(first.depth))
+    init, step = _compiled(args, model, key, frame, box, bar)
     state = None
     for i, frame_np in inputs.frames:
         frame = Frame(jnp.asarray(frame_np.colour), jnp.asarray(frame_np.depth))
         key, k = jax.random.split(key)
         t0 = time.perf_counter()
         if state is None:
-            box = jnp.asarray(inputs.box)
-            with _compiling("init", bar):
-                state = jax.block_until_ready(init(model.params, k, frame, box, model.context))
+            state = jax.block_until_ready(init(model.params, k, frame, box, model.context))
             row = _first_row(inputs, model, (time.perf_counter() - t0) * 1000.0)
         else:
-            with _compiling("step", bar) if not results.windowed else contextlib.nullcontext():
-                state, info = jax.block_until_ready(step(model.params, k, state, frame))
+            state, info = jax.block_until_ready(step(model.params, k, state, frame))
             row = _step_row(model, info, (time.perf_counter() - t0) * 1000.0)
             results.windowed.append(bool(info.windowed))
         if not np.all(np.isfinite(row.box)):  # never write a NaN box
@@ -175,12 +175,38 @@ def _loop(args, source, inputs: Inputs, model: Model, sinks: Sinks, results: Res
     bar.close()  # the final progress line only for a completed run
 
 
+def _compiled(args, model: Model, key, frame, box, bar):
+    """``init`` and ``step`` compiled ahead of the first frame (each with its "compiling"
+    line), and refused with one error line when they need more memory than is free
+    (:mod:`cpf_jax.memory`)."""
+    import jax
+
+    from cpf_jax.errors import MemoryTooSmall
+    from cpf_jax.memory import FREE_SHARE, check_fits, free_bytes, needed_bytes
+
+    filt, params, context = model.filt, model.params, model.context
+    with _compiling("init", bar):
+        init = jax.jit(filt.init).lower(params, key, frame, box, context).compile()
+    state = jax.eval_shape(filt.init, params, key, frame, box, context)
+    with _compiling("step", bar):
+        step = jax.jit(filt.step).lower(params, key, state, frame).compile()
+    needs = [n for n in (needed_bytes(init), needed_bytes(step)) if n is not None]
+    free = free_bytes()
+    h, w = frame.colour.shape[:2]
+    try:
+        check_fits(max(needs, default=None), f"--particles {args.particles} on {w}x{h}", free)
+    except MemoryTooSmall as e:
+        fit = int(args.particles * FREE_SHARE * free / max(needs))
+        raise MemoryTooSmall(f"{e}; about {fit:,} particles fit") from None
+    return init, step
+
+
 @contextlib.contextmanager
 def _compiling(what: str, bar) -> Iterator[None]:
-    """One stderr line around the first call of the jitted ``init`` or ``step``, which
-    compiles it (or loads it from the disk cache) before it runs, with its time."""
+    """One stderr line around compiling ``init`` or ``step`` (or loading it from the disk
+    cache), with its time."""
     bar.clear()
-    print(f"cpf-track: compiling {what} (first call) ...", end="", file=sys.stderr, flush=True)
+    print(f"cpf-track: compiling {what} ...", end="", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     try:
         yield
