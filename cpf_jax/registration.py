@@ -178,6 +178,11 @@ def _camera(d: dict[str, Any], name: str, source: str | None) -> tuple[Intrinsic
     return Intrinsics(fx, fy, cx, cy), (int(size[0]), int(size[1]))
 
 
+# Two cameras' centres lie at least this far apart; a shorter non-zero baseline is a
+# translation in metres (a Kinect's 25 mm read as 0.025).
+MIN_BASELINE_MM = 1.0
+
+
 def calibration_from_dict(d: Any, source: str | None = None) -> Calibration:
     """Parse the JSON layout of the module docstring; ``source`` names the file in errors."""
     if not isinstance(d, dict):
@@ -197,6 +202,11 @@ def calibration_from_dict(d: Any, source: str | None = None) -> Calibration:
     if "translation_mm" not in d:
         raise CalibrationError(f"{_where(source)}missing field 'translation_mm' (3 numbers, mm)")
     t = _numbers(d["translation_mm"], (3,), "translation_mm", source)
+    if 0 < np.linalg.norm(t) < MIN_BASELINE_MM:
+        raise CalibrationError(
+            f"{_where(source)}field 'translation_mm' is {np.linalg.norm(t):.3g} mm long, "
+            f"nearer than two cameras sit ({MIN_BASELINE_MM:g} mm): metres? Give millimetres"
+        )
     off = _numbers(d.get("offset_px", [0.0, 0.0]), (2,), "offset_px", source)
     scale = float(_numbers(d.get("depth_scale_mm", 1.0), (), "depth_scale_mm", source))
     if not scale > 0:

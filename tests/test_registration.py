@@ -187,6 +187,7 @@ def _broken(tmp_path, mutate) -> Path:
         (lambda d: d.__setitem__("rotation", [[1, 0], [0, 1]]), "rotation"),
         (lambda d: d.__setitem__("rotation", [[2, 0, 0], [0, 1, 0], [0, 0, 1]]), "rotation"),
         (lambda d: d.__setitem__("translation_mm", [1, "a", 3]), "translation_mm"),
+        (lambda d: d.__setitem__("translation_mm", [-0.026, 0, 0]), "translation_mm"),  # metres
         (lambda d: d["depth"]["intrinsics"].pop("fx"), "depth.intrinsics.fx"),
         (lambda d: d["colour"].__setitem__("size", [640]), "colour.size"),
         (lambda d: d.__setitem__("offset_px", [1, 2, 3]), "offset_px"),
