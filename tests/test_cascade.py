@@ -290,11 +290,15 @@ def test_cli_points_writes_joints_and_errors(tmp_path, capsys):
 
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 6
-    assert rows[0]["head_X_mm"] == ""  # no 3D estimate at the initial frame
-    for r in rows[1:]:
+    for r in rows:  # the initial frame too, where the points start
         for name in JOINTS:
             z = float(r[f"{name}_Z_mm"])
             assert 1000.0 < z < 8000.0  # on the walker, in mm
+    truth = make_sequence("walk_towards", n_frames=1)
+    for name in JOINTS:  # the start's 3D points lie at the scene's joints
+        start = np.array([float(rows[0][f"{name}_{c}_mm"]) for c in "XYZ"])
+        joint = truth.joints3d[0, list(truth.joint_names).index(name)]
+        assert np.linalg.norm(start - joint) < 60.0, (name, start, joint)
     assert read_results(out)["boxes"].shape == (6, 4)
     from rerun.chunk import RrdReader
 

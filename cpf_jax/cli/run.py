@@ -110,12 +110,17 @@ class Sinks:
             print(f"cpf-track: warning: {e}", file=sys.stderr)
 
 
-def _first_row(inputs: Inputs, model: Model, ms: float) -> Row:
-    """The initial frame's row: the start box, the points where they start."""
-    n = len(model.points)
-    p2 = np.asarray(model.context.points, np.float32) if n else np.zeros((0, 2), np.float32)
+def _first_row(inputs: Inputs, model: Model, state: Any, ms: float) -> Row:
+    """The initial frame's row: the start box, the points where they start (on the body
+    pixel nearest each given point) with their 3D positions."""
     box = np.asarray(inputs.box, np.float32)
-    p3 = np.full((n, 3), np.nan, np.float32)
+    if not model.points:
+        p2, p3 = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)
+        return Row(box, False, float(model.n_particles), ms, p2, p3, box)
+    from cpf_jax.points import estimate_3d
+
+    p2 = np.asarray(state.points.estimate, np.float32)
+    p3 = np.asarray(estimate_3d(model.config.points, model.params.points, state.points))
     return Row(box, False, float(model.n_particles), ms, p2, p3, box)
 
 
@@ -162,7 +167,7 @@ def _loop(args, source, inputs: Inputs, model: Model, sinks: Sinks, results: Res
         t0 = time.perf_counter()
         if state is None:
             state = jax.block_until_ready(init(model.params, k, frame, box, model.context))
-            row = _first_row(inputs, model, (time.perf_counter() - t0) * 1000.0)
+            row = _first_row(inputs, model, state, (time.perf_counter() - t0) * 1000.0)
         else:
             state, info = jax.block_until_ready(step(model.params, k, state, frame))
             row = _step_row(model, info, (time.perf_counter() - t0) * 1000.0)

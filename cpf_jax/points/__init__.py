@@ -33,6 +33,7 @@ from cpf_jax.points.filter import (
     PointWeightParams,
     build_point_filter,
     default_point_params,
+    estimate_3d,
 )
 
 __all__ = [
@@ -56,4 +57,5 @@ __all__ = [
     "body_model",
     "build_point_filter",
     "default_point_params",
+    "estimate_3d",
 ]

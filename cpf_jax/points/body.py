@@ -208,14 +208,21 @@ def point_3d(config: PointConfig, bm: BodyModel, xy: Array, offset: Array) -> Ar
     ji = dk.frame_to_window(bm.window, xy)
     near, found = dk.nearest_true(bm.body, jnp.stack([ji[..., 1], ji[..., 0]], -1))
     rc = jnp.where(on[..., None], rc, near)
-    z = bm.depth[rc[..., 0], rc[..., 1]]
-    fx, fy, cx, cy = config.intrinsics
+    z = jnp.where(found, bm.depth[rc[..., 0], rc[..., 1]], 0.0)
+    return ray_point(config.intrinsics, xy, z, offset)
+
+
+def ray_point(intrinsics, xy: Array, z: Array, offset: Array) -> Array:
+    """The 3D point ``[..., 3]`` (mm) at depth ``z`` under frame position ``xy [..., 2]``
+    (box convention: pixel centres at +0.5), pushed ``offset`` mm further along the viewing
+    ray; NaN where ``z <= 0`` (no depth)."""
+    fx, fy, cx, cy = intrinsics
     u = xy[..., 0] - 0.5
     v = xy[..., 1] - 0.5
     ray = jnp.stack([(u - cx) / fx, (v - cy) / fy, jnp.ones_like(u)], -1)
     p = z[..., None] * ray
     p = p + offset[..., None] * ray / jnp.linalg.norm(ray, axis=-1, keepdims=True)
-    return jnp.where((found & (z > 0))[..., None], p, jnp.nan)
+    return jnp.where((z > 0)[..., None], p, jnp.nan)
 
 
 def body_extremities(config: PointConfig, bm: BodyModel) -> tuple[Array, Array]:

@@ -35,7 +35,14 @@ from cpf_jax.kernels import depth as dk
 from cpf_jax.kernels import resample as rs
 from cpf_jax.kernels import spin as sk
 from cpf_jax.params import P, props, values
-from cpf_jax.points.body import BodyModel, body_model, pixel_centre, point_3d, window_pixels
+from cpf_jax.points.body import (
+    BodyModel,
+    body_model,
+    pixel_centre,
+    point_3d,
+    ray_point,
+    window_pixels,
+)
 from cpf_jax.points.config import PointConfig
 from cpf_jax.types import check_intrinsics
 
@@ -52,6 +59,7 @@ __all__ = [
     "PointInfo",
     "point_init",
     "point_step",
+    "estimate_3d",
     "build_point_filter",
 ]
 
@@ -206,6 +214,13 @@ def point_init(
         estimate=start,
         depth=bm.depth[rc[:, 0], rc[:, 1]],
     )
+
+
+def estimate_3d(config: PointConfig, params: PointParams, state: PointState) -> Array:
+    """``[P, 3]`` mm: the state's estimates at the surface depth under them (the 3D points
+    of the frame the state was made on, as ``PointInfo.mean3d`` gives a step's)."""
+    off = _per_point(params.estimate.joint_depth_offset, state.estimate.shape[0])[:, 0]
+    return ray_point(config.intrinsics, state.estimate, state.depth, off)
 
 
 def _predict(
