@@ -58,7 +58,7 @@ def _auto_joints(source, start: int) -> tuple[str, ...] | None:
 class PointErrors(NamedTuple):
     names: tuple[str, ...]  # the tracked points
     joints: tuple[str, ...]  # the synthetic joint each point stands for
-    frames: np.ndarray  # [T'] frames scored (visible target, not the initial frame)
+    frames: np.ndarray  # [T'] frames scored (visible target, not the given initial frame)
     err2d: np.ndarray  # [T', P] px
     err3d: np.ndarray  # [T', P] mm (inf: no 3D estimate)
 
@@ -76,7 +76,7 @@ def point_errors(args, source, names, results: Results) -> PointErrors | None:
     seq = source.sequence
     idx = [list(seq.joint_names).index(n) for n in joints]
     sel = np.ones(len(done), bool)
-    sel[0] = False  # the initial frame has no 3D estimate
+    sel[0] = False  # the initial frame is where the points were given, not tracked
     if source.visible is not None:
         sel &= np.asarray(source.visible, bool)[done]
     frames = done[sel]
