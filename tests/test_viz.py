@@ -5,6 +5,7 @@ from __future__ import annotations
 import warnings
 from collections import defaultdict
 
+import cv2
 import numpy as np
 import pytest
 from rerun.chunk import RrdReader
@@ -43,7 +44,7 @@ def test_recording_round_trip(tmp_path):
     path = tmp_path / "run.rrd"
     k = Intrinsics(500.0, 501.0, 3.5, 2.5)
     rng = np.random.default_rng(0)
-    with RerunLogger(path) as log:
+    with RerunLogger(path, raw=True) as log:
         for i in range(T):
             log.log_frame(i, frame(i), k)
             log.log_box(i, [1 + i, 2, 3, 4], label="cpf")
@@ -74,7 +75,7 @@ def test_recording_round_trip(tmp_path):
     )
     assert rrd["/world"]["static"]
     assert "DepthImage:meter" in rrd["/world/camera/depth"]["columns"]
-    assert "Image:buffer" in rrd["/world/camera/image"]["columns"]
+    assert "Image:buffer" in rrd["/world/camera/image"]["columns"]  # raw=True
     assert "Boxes2D:labels" in rrd["/world/camera/tracker/box"]["columns"]
     ess = sorted((r["frame"], r["Scalars:scalars"]) for r in rrd["/series/ess"]["rows"])
     assert [v for _, v in ess] == [[5.0], [6.0], [7.0], [8.0]]
@@ -88,6 +89,27 @@ def test_recording_round_trip(tmp_path):
     )  # mm -> m, NaN dropped
     particles = rrd["/world/camera/tracker/particles"]["rows"][0]
     assert len(particles["Points2D:positions"]) == 10 and len(particles["Points2D:colors"]) == 10
+
+
+def test_compact_logging_encodes_colour_and_thins_depth_losslessly(tmp_path):
+    from cpf_jax.synthetic import make_sequence
+
+    seq = make_sequence("walk_towards", n_frames=6)
+    sizes = {}
+    for raw in (False, True):
+        path = tmp_path / f"raw{raw}.rrd"
+        with RerunLogger(path, raw=raw) as log:
+            for i in range(6):
+                log.log_frame(i, Frame(seq.colour[i], seq.depth[i]))
+        sizes[raw] = path.stat().st_size / 6
+    assert sizes[False] < 150_000 and sizes[True] > 5 * sizes[False], sizes  # bytes a frame
+    rrd = read_rrd(tmp_path / "rawFalse.rrd")
+    image, depth = rrd["/world/camera/image"], rrd["/world/camera/depth"]
+    assert sorted(image["frames"]) == list(range(6)) and sorted(depth["frames"]) == [0, 3]
+    assert image["rows"][0]["EncodedImage:media_type"] == ["image/jpeg"]
+    blob = sorted(depth["rows"], key=lambda r: r["frame"])[1]["EncodedDepthImage:blob"][0]
+    decoded = cv2.imdecode(np.asarray(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(decoded, seq.depth[3])  # lossless mm
 
 
 def test_colour_only_frames_skip_depth_and_pinhole(tmp_path):

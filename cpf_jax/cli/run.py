@@ -53,7 +53,9 @@ class Sinks:
 
             from cpf_jax.viz import RerunLogger
 
-            self.logger = RerunLogger(args.rrd, spawn=args.spawn, connect=args.connect)
+            self.logger = RerunLogger(
+                args.rrd, spawn=args.spawn, connect=args.connect, raw=args.log_raw
+            )
             if model.points:  # layer 2's segmented body, as a 3D point cloud
                 from cpf_jax.cascade import body_surface
 
