@@ -1,6 +1,7 @@
 """A small dependency-free progress bar for the command line.
 
-On a terminal it redraws one line on stderr (``  37/120 [=====     ]  12.3 fps  ETA 0:07``)
+On a terminal it redraws one line on stderr (``  37/120 [=====     ]  12.3 fps  ETA 0:07``,
+with ``  step 41 ms`` when the caller says how long its steps take)
 at most every ``min_interval`` seconds. When the stream is not a terminal (a log
 file, CI, a pipe) it prints nothing while running and one summary line at the end,
 so logs stay readable. Live sources have no length: pass ``total=None`` and the
@@ -19,6 +20,7 @@ __all__ = ["Progress", "progress", "format_duration"]
 T = TypeVar("T")
 
 _BAR_WIDTH = 20
+STEP_WINDOW = 30  # steps the shown step time is the median of (a second of a 30 Hz camera)
 
 
 def format_duration(seconds: float) -> str:
@@ -69,6 +71,7 @@ class Progress:
         self._last_draw = -float("inf")
         self._closed = False
         self._width = 0
+        self._step_ms: list[float] = []  # the last STEP_WINDOW steps' times
 
     @property
     def elapsed(self) -> float:
@@ -81,12 +84,24 @@ class Progress:
         elapsed = self.elapsed
         return self.count / elapsed if elapsed > 0 else 0.0
 
+    @property
+    def step_ms(self) -> float | None:
+        """Median time of the last :data:`STEP_WINDOW` steps given to :meth:`update`, or None."""
+        if not self._step_ms:
+            return None
+        times = sorted(self._step_ms)
+        return times[len(times) // 2]
+
     def line(self) -> str:
         """The status text for the current count (no carriage return)."""
         prefix = f"{self.label} " if self.label else ""
         rate = self.rate
+        step = "" if self.step_ms is None else f"  step {self.step_ms:.0f} ms"
         if self.total is None:
-            return f"{prefix}{self.count} frames  {rate:.1f} fps  {format_duration(self.elapsed)}"
+            return (
+                f"{prefix}{self.count} frames  {rate:.1f} fps  "
+                f"{format_duration(self.elapsed)}{step}"
+            )
         total = max(self.total, 0)
         frac = min(self.count / total, 1.0) if total else 1.0
         filled = int(round(frac * _BAR_WIDTH))
@@ -95,12 +110,15 @@ class Progress:
         digits = len(str(total))
         return (
             f"{prefix}{self.count:>{digits}}/{total} [{bar}]  {rate:.1f} fps  "
-            f"ETA {format_duration(eta)}"
+            f"ETA {format_duration(eta)}{step}"
         )
 
-    def update(self, n: int = 1) -> None:
-        """Record ``n`` more finished steps; redraw when on a terminal and due."""
+    def update(self, n: int = 1, step_ms: float | None = None) -> None:
+        """Record ``n`` more finished steps (the last of them taking ``step_ms``, when
+        given); redraw when on a terminal and due."""
         self.count += n
+        if step_ms is not None:
+            self._step_ms = [*self._step_ms[-(STEP_WINDOW - 1) :], float(step_ms)]
         if not self.interactive:
             return
         now = self._clock()

@@ -81,3 +81,15 @@ def test_unknown_total_and_iterable_wrapper():
     out3 = io.StringIO()
     assert list(progress([1, 2], stream=out3)) == [1, 2]
     assert out3.getvalue().startswith("2/2 frames")
+
+
+def test_the_line_shows_the_median_step_time_when_given():
+    clock, out = FakeClock(), FakeTTY()
+    bar = Progress(None, stream=out, clock=clock, min_interval=0.0)
+    for ms in (900.0, 12.0, 11.0, 13.0, 10.0):  # the first step (compiled init) is an outlier
+        clock.t += 0.1
+        bar.update(step_ms=ms)
+    assert bar.step_ms == 12.0 and out.getvalue().rstrip().endswith("step 12 ms")
+    for _ in range(40):  # a window of the last 30
+        bar.update(step_ms=20.0)
+    assert bar.step_ms == 20.0

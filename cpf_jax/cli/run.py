@@ -178,7 +178,7 @@ def _loop(args, source, inputs: Inputs, model: Model, sinks: Sinks, results: Res
             raise CpfJaxError(f"{frame_name(source, i)}: the filter produced a non-finite box")
         _record(results, i, row)
         sinks.write(i, frame_np, frame, row, state)
-        bar.update()
+        bar.update(step_ms=row.ms)
     bar.close()  # the final progress line only for a completed run
 
 
