@@ -116,3 +116,22 @@ def test_nothing_to_track_and_bad_rows():
         mot_metrics(np.zeros((3, 4)), np.zeros((0, 6)))
     with pytest.raises(ValueError, match="an id appears twice in frame 2"):
         mot_metrics(np.array([[2, 1, 0, 0, 5, 5], [2, 1, 9, 9, 5, 5]]), np.zeros((0, 6)))
+
+
+def test_motchallenge_files_round_trip_in_0_based_frames_and_pixels(tmp_path):
+    from cpf_jax.errors import SourceError
+    from cpf_jax.io import MotWriter, read_mot
+
+    with MotWriter(tmp_path / "run.txt") as out:
+        out.write(0, [3, 4], [[0.0, 10.0, 20.0, 40.0], [5.5, 6.0, 7.0, 8.0]], [0.9, 0.5])
+        out.write(2, [3], [[1.0, 11.0, 20.0, 40.0]])
+    text = (tmp_path / "run.txt").read_text().splitlines()
+    assert text[0] == "1,3,1.00,11.00,20.00,40.00,0.900,-1,-1,-1"  # 1-based, as MOTChallenge
+    rows = read_mot(tmp_path / "run.txt")
+    np.testing.assert_allclose(
+        rows[:, :6], [[0, 3, 0, 10, 20, 40], [0, 4, 5.5, 6, 7, 8], [2, 3, 1, 11, 20, 40]]
+    )
+    assert mot_metrics(rows, rows).mota == 100.0
+    (tmp_path / "bad.txt").write_text("1,2,3\n")
+    with pytest.raises(SourceError, match=r"bad.txt:1: expected 'frame,id,x,y,w,h"):
+        read_mot(tmp_path / "bad.txt")

@@ -24,11 +24,14 @@ from cpf_jax.io.images import (
     read_depth,
     tum_depth,
 )
+from cpf_jax.io.mot import MotWriter, read_mot
 from cpf_jax.io.results import ResultsWriter, read_results
 from cpf_jax.io.sources import open_source
 from cpf_jax.io.synthetic import SyntheticSource, open_synthetic
 
 __all__ = [
+    "MotWriter",
+    "read_mot",
     "FrameSource",
     "LiveSource",
     "Recording",
