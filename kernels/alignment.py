@@ -28,6 +28,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax import Array
 
+from . import color
+
 __all__ = ["colour_edges", "depth_edges", "shift_scores", "edge_shift_scores"]
 
 # A jump of at least this much between neighbours is an edge (the background rule's 150 mm
@@ -38,7 +40,7 @@ DEPTH_STEP_REL = 0.04
 
 def colour_edges(colour: Array) -> Array:
     """``[H, W] float32`` in [0, 1]: grey gradient magnitude over three times its mean."""
-    grey = jnp.asarray(colour, jnp.float32) @ jnp.array([0.299, 0.587, 0.114], jnp.float32)
+    grey = color.grey(colour)
     gx = jnp.zeros_like(grey).at[:, 1:-1].set(grey[:, 2:] - grey[:, :-2])
     gy = jnp.zeros_like(grey).at[1:-1, :].set(grey[2:, :] - grey[:-2, :])
     mag = jnp.sqrt(gx * gx + gy * gy)

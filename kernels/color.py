@@ -35,6 +35,7 @@ __all__ = [
     "hsv_bin_index",
     "hs_bin_luts",
     "rgb_to_hsv_float",
+    "grey",
     "ACHROMATIC_S_MIN",
     "ACHROMATIC_V_MIN",
 ]
@@ -45,6 +46,12 @@ ACHROMATIC_V_MIN = 51  # 0.2 * 255
 
 _HSV_SHIFT = 12
 _HALF = 1 << (_HSV_SHIFT - 1)
+
+
+def grey(rgb: Array) -> Array:
+    """``[..., H, W] float32`` luma of ``[..., H, W, 3]`` RGB, ITU-R BT.601 weights (as
+    OpenCV's ``COLOR_RGB2GRAY``), in the input's range."""
+    return jnp.asarray(rgb, jnp.float32) @ jnp.array([0.299, 0.587, 0.114], jnp.float32)
 
 
 def _opencv_tables() -> tuple[np.ndarray, np.ndarray]:
