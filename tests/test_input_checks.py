@@ -487,3 +487,9 @@ def test_too_many_particles_for_the_memory_is_one_line_before_tracking(folder, m
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert line.startswith("cpf-track: error: --particles 100000 on 512x424 needs about")
     assert "0.0 GB is free; about" in line and "particles fit" in line
+
+
+def test_the_colour_folder_of_a_recording_is_named_for_what_it_is(folder):
+    with pytest.warns(InputWarning, match=r"rgb is the colour folder of the RGB-D recording"):
+        source = open_source(str(folder / "rgb"))
+    assert source.kind == "otb" and not source.has_depth

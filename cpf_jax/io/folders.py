@@ -421,6 +421,14 @@ _OPENERS = {
 def open_folder(path: Path | str, kind: str | None = None) -> ImageFolderSource:
     """Open an image folder of ``kind``, or of the kind :func:`detect_folder_kind` finds."""
     kind = kind or detect_folder_kind(path)
+    parent = Path(path).resolve().parent
+    if kind == "otb" and Path(path).name.lower() in _COLOUR_DIRS and (parent / "depth").is_dir():
+        warnings.warn(
+            f"{path} is the colour folder of the RGB-D recording {parent}: read as colour "
+            f"only, without its depth and ground truth; give {parent} for them",
+            InputWarning,
+            stacklevel=2,
+        )
     try:
         opener = _OPENERS[kind]
     except KeyError:
