@@ -104,8 +104,8 @@ def test_depth_units_from_dtype_and_range():
     assert depth_millimetres(raw, "f")[0] is raw
     with pytest.raises(SourceError, match="f: the median depth is 12.5 m when read as mm"):
         depth_millimetres(np.full((2, 2), 12500, np.uint16), "f")  # TUM's 2.5 m
-    with pytest.raises(SourceError, match="the median depth is 0.12 m .* --depth-scale N"):
-        depth_millimetres(np.full((2, 2), 120, np.uint8), "f")  # 8-bit, or centimetres
+    with pytest.raises(SourceError, match="the median depth is 0.3 m .* --depth-scale N"):
+        depth_millimetres(np.full((2, 2), 300, np.uint16), "f")  # a wall at 3 m in centimetres
     mm, note = depth_millimetres(np.full((2, 2), 12500, np.uint16), "f", per_metre=5000)
     np.testing.assert_array_equal(mm, 2500)
     assert note is None  # the units were given, not guessed

@@ -221,7 +221,7 @@ def test_tum_layout(tmp_path):
 
 def test_npz_source_and_load_all(tmp_path):
     colour = np.stack([rgb_image(i) for i in range(4)])
-    depth = np.arange(4 * 12 * 16, dtype=np.uint16).reshape(4, 12, 16)
+    depth = 1000 + np.arange(4 * 12 * 16, dtype=np.uint16).reshape(4, 12, 16)  # 1-1.8 m
     boxes = np.array([[1, 2, 3, 4], [0, 0, 0, 0], [1, 2, 3, 4], [1, 2, 3, 4]], np.float32)
     np.savez(tmp_path / "s.npz", colour=colour, depth=depth, boxes=boxes, intrinsics=[5, 6, 7, 8])
     src = cio.open_source(tmp_path / "s.npz")

@@ -36,10 +36,10 @@ TUM_PER_METRE = 5000.0  # TUM RGB-D's depth PNGs: 5,000 per metre
 # Floating-point depth whose largest value is at most this is in metres (no room of people
 # is 20 mm deep; no depth camera sees 20 m).
 _METRES_MAX = 20.0
-# Millimetres whose median is outside this range (0.2-8 m, where depth cameras measure
-# people) are in another unit: TUM's 5,000 per metre puts a wall at 2 m at 10,000, and
-# 8-bit or centimetre depth puts it under 256.
-_MM_MEDIAN_MIN = 200.0
+# Millimetres whose median is outside this range (0.4-8 m, where depth cameras see a room
+# with people in it) are in another unit: TUM's 5,000 per metre puts a wall at 2 m at
+# 10,000, centimetres put a wall nearer than 4 m under 400.
+_MM_MEDIAN_MIN = 400.0
 _MM_MEDIAN_MAX = 8000.0
 
 
@@ -115,7 +115,7 @@ def depth_millimetres(
     Raises:
       SourceError: naming ``where``, for depth that is not a number type, that does not
         fit 16-bit millimetres, or (``check_median``; a source checks its first frame)
-        whose median (under 0.2 m or over 8 m) says another unit.
+        whose median (under 0.4 m or over 8 m) says another unit.
     """
     depth = np.asarray(depth)
     if not (np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)):
@@ -154,8 +154,8 @@ def _scaled_mm(depth: np.ndarray, where: str, mm_per_value: float) -> tuple[np.n
 
 
 def _check_median(depth_mm: np.ndarray, where: str, per_metre: float | None) -> None:
-    """Refuse depth whose median valid value, read as mm, is nearer than any depth camera
-    sees a person (0.2 m) or farther than it measures one (8 m): another unit."""
+    """Refuse depth whose median valid value, read as mm, is nearer than a room with a
+    person in it (0.4 m) or farther than a depth camera measures one (8 m): another unit."""
     valid = depth_mm[depth_mm > 0]
     if valid.size == 0:
         return
@@ -165,7 +165,7 @@ def _check_median(depth_mm: np.ndarray, where: str, per_metre: float | None) -> 
     read = f"at {per_metre:g} per metre" if per_metre is not None else "as mm"
     raise SourceError(
         f"{where}: the median depth is {median / 1000:g} m when read {read}, outside "
-        "0.2-8 m: the values are in another unit. Give the stored values per metre with "
+        "0.4-8 m: the values are in another unit. Give the stored values per metre with "
         "--depth-scale N (open_source(..., depth_scale=N); TUM: 5000, metres: 1)"
     )
 
