@@ -122,13 +122,16 @@ def _check_colour(source, start: int, first) -> None:
     line naming the first frame that is not, since the box's appearance is learnt there."""
     if np.ptp(first.colour) > 0:
         return
+    from cpf_jax.io.base import LiveSource
+
     value = ",".join(str(int(v)) for v in first.colour[0, 0])
     later = _first_where(source, start + 1, lambda f: np.ptp(f.colour) > 0)
-    hint = (
-        f"frame {later} is the first that is not: start there with --start {later}"
-        if later is not None
-        else "none of the next 300 frames is otherwise"
-    )
+    if isinstance(source, LiveSource):
+        hint = "a camera still warming up? Start later, with a larger --background N"
+    elif later is not None:
+        hint = f"frame {later} is the first that is not: start there with --start {later}"
+    else:
+        hint = "none of the next 300 frames is otherwise"
     raise UsageError(
         f"{source.describe()} frame {start} is blank (every pixel RGB {value}), so the box's "
         f"colour cannot be learnt there; {hint}"
@@ -403,7 +406,7 @@ def _calibration(args: argparse.Namespace, source):
         return None
     where = f"{source.path}/calibration.json" if source.path is not None else "calibration"
     if not {"format", "depth"} & set(source.calibration):
-        if source.intrinsics is None:
+        if source.intrinsics is None and source.kind == "rgbd":  # its calibration.json
             warnings.warn(
                 f"{where}: neither a registration (keys 'format', 'depth', ...) nor "
                 "intrinsics ('intrinsics' or 'K'), so it is not used (docs/recordings.md)",
