@@ -479,11 +479,14 @@ def test_the_memory_a_filter_needs_grows_with_its_particles_and_is_checked():
         check_fits(needs[1], "it", free=needs[1])
 
 
-def test_too_many_particles_for_the_memory_is_one_line_before_tracking(folder, monkeypatch, capsys):
+def test_too_many_particles_for_the_memory_is_one_line_before_tracking(
+    folder, tmp_path, monkeypatch, capsys
+):
     import cpf_jax.memory
 
     monkeypatch.setattr(cpf_jax.memory, "free_bytes", lambda device=None: 10_000_000)
-    assert main([str(folder), "--particles", "100000", "--out", "x.csv", "--no-progress"]) == 2
+    out = str(tmp_path / "run.csv")
+    assert main([str(folder), "--particles", "100000", "--out", out, "--no-progress"]) == 2
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert line.startswith("cpf-track: error: --particles 100000 on 512x424 needs about")
     assert "0.0 GB is free; about" in line and "particles fit" in line
