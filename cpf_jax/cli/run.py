@@ -193,8 +193,9 @@ def _compiled(args, model: Model, key, frame, box, bar):
 
     filt, params, context = model.filt, model.params, model.context
     with _compiling("init", bar):
-        init = jax.jit(filt.init).lower(params, key, frame, box, context).compile()
-    state = jax.eval_shape(filt.init, params, key, frame, box, context)
+        lowered = jax.jit(filt.init).lower(params, key, frame, box, context)
+        init = lowered.compile()
+    state = lowered.out_info  # the state's shapes, without tracing init again
     with _compiling("step", bar):
         step = jax.jit(filt.step).lower(params, key, state, frame).compile()
     needs = [n for n in (needed_bytes(init), needed_bytes(step)) if n is not None]

@@ -40,18 +40,23 @@ def open_source(
       SourceError: one line naming what was asked for and what is wrong
       (:class:`~cpf_jax.errors.CameraUnavailable` for cameras).
     """
+    if depth_scale is not None and not (math.isfinite(depth_scale) and depth_scale > 0):
+        raise SourceError(f"depth scale must be a finite number > 0, got {depth_scale}")
     source = _open(str(spec), kind)
-    if depth_scale is not None:
-        if not (math.isfinite(depth_scale) and depth_scale > 0):
-            raise SourceError(f"depth scale must be a finite number > 0, got {depth_scale}")
-        if not isinstance(source, (ImageFolderSource, NpzSource)):
-            raise SourceError(
-                f"{source.describe()}: a depth scale applies to depth read from files "
-                f"(image folders, .npz), not to a {source.kind} source, whose units are known"
-            )
-        if not source.has_depth:
-            raise SourceError(f"{source.describe()}: a depth scale given, but it has no depth")
-        source.depth_scale = float(depth_scale)
+    if depth_scale is None:
+        return source
+    why = None
+    if not isinstance(source, (ImageFolderSource, NpzSource)):
+        why = (
+            f"a depth scale applies to depth read from files (image folders, .npz), not to "
+            f"a {source.kind} source, whose units are known"
+        )
+    elif not source.has_depth:
+        why = "a depth scale given, but it has no depth"
+    if why is not None:
+        source.close()  # a camera opened for nothing is stopped
+        raise SourceError(f"{source.describe()}: {why}")
+    source.depth_scale = float(depth_scale)
     return source
 
 
