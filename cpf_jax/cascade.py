@@ -62,6 +62,7 @@ __all__ = [
     "default_cascade_params",
     "build_cascade",
     "check_points",
+    "layer2_frame",
     "body_surface",
     "find_body_points",
     "body_points_confidence",
@@ -165,7 +166,7 @@ def check_points(points_xy, frame_hw: tuple[int, int]) -> np.ndarray:
     return p.astype(np.float32)
 
 
-def _point_frame(
+def layer2_frame(
     config: CascadeConfig, frame: Frame, box: Array, background: Background | None
 ) -> PointFrame:
     """Layer 2's frame for ``box``: the depth, and the foreground when configured."""
@@ -195,7 +196,7 @@ def body_surface(
 ) -> Array:
     """``[Hw * Ww, 3]`` mm: camera-frame points of layer 2's segmented body in ``box`` (NaN
     off the body), as a step sees it; for display (``cpf-track`` logs it to Rerun)."""
-    inp = _point_frame(config, frame, jnp.asarray(box, jnp.float32), background)
+    inp = layer2_frame(config, frame, jnp.asarray(box, jnp.float32), background)
     bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
     return jnp.where(bm.body[..., None], bm.points, jnp.nan).reshape(-1, 3)
 
@@ -206,7 +207,7 @@ def find_body_points(
     """Points to start layer 2 on, found on the body in ``box``: ``[5, 2]`` frame positions
     of ``AUTO_POINTS`` and the reach ``[4]`` mm of the hands and feet
     (``points.body_extremities``)."""
-    inp = _point_frame(config, frame, jnp.asarray(box, jnp.float32), background)
+    inp = layer2_frame(config, frame, jnp.asarray(box, jnp.float32), background)
     bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
     return body_extremities(config.points, bm)
 
@@ -256,7 +257,7 @@ def build_cascade(config: CascadeConfig) -> Filter:
         own = None if config.layer1_background else background
         bg2 = s1.background if config.layer1_background else own
         s2 = layer2.init(
-            params.points, k2, _point_frame(config, frame, box, bg2), box, Context(points=points)
+            params.points, k2, layer2_frame(config, frame, box, bg2), box, Context(points=points)
         )
         return CascadeState(s1, s2, own)
 
@@ -266,7 +267,7 @@ def build_cascade(config: CascadeConfig) -> Filter:
         new_box = i1.estimate if config.box_source == "estimate" else i1.box
         box = jnp.where(i1.lost, state.points.box, new_box)
         bg2 = _layer2_background(config, state, s1)
-        s2, i2 = layer2.step(params.points, k2, state.points, _point_frame(config, frame, box, bg2))
+        s2, i2 = layer2.step(params.points, k2, state.points, layer2_frame(config, frame, box, bg2))
         common = (i1.box, i1.lost, i1.ess, i1.log_evidence, i1.estimate, i1.windowed)
         info = CascadeInfo(*common, i1, i2, box)
         return CascadeState(s1, s2, state.background), info

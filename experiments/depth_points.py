@@ -83,16 +83,11 @@ PARAM_KEYS = {
     "recovery_spread": "motion.recovery_spread",
     "joint_depth_offset": "estimate.joint_depth_offset",
 }
-# name: (generator overrides, use a background-subtraction foreground, filter settings)
+# name: (generator overrides, use a background-subtraction foreground); inside a foreground
+# mask the body is every sizeable component (PointConfig.with_foreground).
 CASES = {
-    "walk_towards": (dict(speed_mps=0.4), False, {}),
-    # Inside a foreground mask the body is every sizeable component, and the
-    # thresholds are looser (the mask has removed floor and furniture already).
-    "walk_across_medium": (
-        {},
-        True,
-        dict(seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05),
-    ),
+    "walk_towards": (dict(speed_mps=0.4), False),
+    "walk_across_medium": ({}, True),
 }
 
 
@@ -113,8 +108,10 @@ def temporal_foreground(seq) -> np.ndarray:
     return np.asarray(mask)
 
 
-def run(seq, method: str, keys: int, foreground=None, config_kw: dict | None = None):
-    cfg = PointConfig(weighting=method, **(config_kw or {}))
+def run(seq, method: str, keys: int, foreground=None):
+    cfg = PointConfig(weighting=method)
+    if foreground is not None:
+        cfg = cfg.with_foreground()
     filt = build_point_filter(cfg)
     params = pp.replace(
         default_point_params(), "estimate.joint_depth_offset", jnp.asarray(JOINT_OFFSET)
@@ -252,7 +249,7 @@ def main() -> None:
     curves: dict = {}
     md = ["# Depth-layer point tracking on synthetic walks (thesis Fig. 5.7)", ""]
     for case in args.cases.split(","):
-        kw, use_fg, config_kw = CASES[case]
+        kw, use_fg = CASES[case]
         seq = make_sequence(case, seed=0, n_frames=args.frames, fps=30.0, **kw)
         fg = temporal_foreground(seq) if use_fg else None
         occl = self_occlusion_frames(seq)[1:]
@@ -271,7 +268,7 @@ def main() -> None:
         ]
         case_curves = {}
         for method in METHODS:
-            runs, idx = run(seq, method, args.keys, fg, config_kw)
+            runs, idx = run(seq, method, args.keys, fg)
             errs = np.stack([errors(seq, info, idx) for info, _ in runs])  # [keys, T, P]
             hands = errs[..., list(HANDS)]
             summ = summarise(hands)

@@ -131,9 +131,7 @@ def _rgbd_cases(occ) -> dict:
 
 def _cascade_cases(tow) -> dict:
     rgb = _windowed(ColourConfig(n_particles=150, model="ar1", hierarchical=True), tow, growth=1.5)
-    foreground = PointConfig(
-        seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05
-    )
+    foreground = PointConfig().with_foreground()
     configs = {
         "cascade_gridocc": CascadeConfig(box=_windowed(RGBDConfig(n_particles=150), tow)),
         "cascade_rgb_report_fg": CascadeConfig(

@@ -577,9 +577,14 @@ def suggest_window(
     for every N (8 standard deviations when ``n_particles`` is None), or
     ``n_std`` standard deviations when given (a filter that keeps its particles
     inside the window). Rounded up to ``quantum``, capped at the frame. Pure
-    Python: call it outside ``jit``.
+    Python: call it outside ``jit``; a box without a positive, finite width and height
+    (a target not in view) is refused with a ``ValueError``.
     """
     w, h = box_wh
+    if not (0 < w < math.inf and 0 < h < math.inf):
+        raise ValueError(
+            f"a histogram window needs a box of positive width and height, got {w:g} x {h:g}"
+        )
     fh, fw = frame_shape
     if n_std is None:
         n = n_particles

@@ -61,9 +61,7 @@ background = median_background(
 box_config = RGBDConfig(variant="grid-occlusion", n_particles=150).with_window(
     tuple(float(v) for v in seq.boxes[0, 2:]), seq.colour.shape[1:3]
 )
-point_config = PointConfig(
-    n_particles=64, seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05
-)
+point_config = PointConfig(n_particles=64).with_foreground()
 config = CascadeConfig(box=box_config, points=point_config, foreground=True)
 
 # %% [markdown]

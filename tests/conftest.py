@@ -43,6 +43,15 @@ def run_bound_jit(fun, **kwargs):
 
 
 @pytest.fixture(autouse=True)
+def _untuned_malloc(monkeypatch):
+    """``cpf-track`` tunes glibc's malloc by default (``cpu_tuning.tune_malloc``); the tests
+    run it in this process, whose allocator stays as it started."""
+    import cpf_jax.cli
+
+    monkeypatch.setattr(cpf_jax.cli, "tune_process", lambda: False)
+
+
+@pytest.fixture(autouse=True)
 def _run_bound_compiles(request, monkeypatch):
     """In a test marked ``run_bound``, every ``jax.jit`` (the test's and the library's,
     looked up as ``jax.jit`` at call time) compiles at ``RUN_BOUND_OPTIONS``."""

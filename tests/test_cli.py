@@ -567,3 +567,16 @@ def test_init_auto_starts_on_the_first_frame_with_a_person(camera, tmp_path, cap
     assert main([*argv, "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no person-shaped foreground in frames 3..5" in err[0]
+
+
+def test_malloc_is_tuned_by_default_and_not_with_no_tune_malloc(tmp_path, monkeypatch, capsys):
+    import cpf_jax.cli
+
+    calls = []
+    monkeypatch.setattr(cpf_jax.cli, "tune_process", lambda: calls.append(1) or True)
+    missing = str(tmp_path / "nothing")
+    assert main([missing, "--particles", "0"]) == 2  # refused after the switch, before JAX
+    assert calls == [1]
+    assert main([missing, "--particles", "0", "--no-tune-malloc"]) == 2
+    assert calls == [1]
+    assert "--particles must be >= 1" in capsys.readouterr().err

@@ -645,6 +645,10 @@ def test_suggest_window():
     assert H.suggest_window((400, 500), 30, frame) == frame  # capped at the frame
     # explicit extent: box * 1.1 + n_std * spread, rounded up to 16
     assert H.suggest_window((150, 200), 15, frame, n_std=6) == (320, 256)
+    # a target not in view has an empty box: refused, not a zero-size window
+    for wh in ((0.0, 0.0), (50.0, 0.0), (float("nan"), 80.0)):
+        with pytest.raises(ValueError, match="positive width and height"):
+            H.suggest_window(wh, 15, frame)
 
 
 # ----------------------------------------------------------------------------- tables and sums

@@ -19,6 +19,8 @@ from cpf_jax.points import (
     build_point_filter,
     default_point_params,
 )
+from cpf_jax.points import body as pb
+from cpf_jax.points import filter as pf
 from cpf_jax.types import Intrinsics
 
 H, W = 120, 128
@@ -218,3 +220,87 @@ def test_vmap_over_keys(sequence):
     assert not np.allclose(means[0], means[1])  # different keys, different clouds
     gt = np.stack([np.stack([f[3]["lh"], f[3]["head"]]) for f in frames[1:4]])
     assert np.all(np.linalg.norm(means - gt, axis=-1) < 6.0)
+
+
+def _weight_inputs(sequence, cfg):
+    """A body model of frame 3, a state made on frame 0 and particles around its points."""
+    frames, inputs = sequence
+    params = default_point_params()
+    first = jax.tree_util.tree_map(lambda x: x[0], inputs)
+    state = jax.jit(build_point_filter(cfg).init)(
+        params, jax.random.PRNGKey(0), first, first.box, Context(points=_start(frames))
+    )
+    bm = jax.jit(lambda d, b: body_model(cfg, d, b))(inputs.depth[3], inputs.box[3])
+    xy = state.estimate[:, None, :] + 4.0 * jax.random.normal(jax.random.PRNGKey(5), (2, 48, 2))
+    return params.weights, bm, state, xy
+
+
+def test_weight_terms_match_their_formulas_under_jit_and_vmap(sequence):
+    cfg = BASE
+    wp, bm, state, xy = _weight_inputs(sequence, cfg)
+    rc, inside = jax.jit(lambda b, x: pb.window_pixels(b, x, cfg.window))(bm, xy)
+    r, c = np.asarray(rc[..., 0]), np.asarray(rc[..., 1])
+    geo = np.asarray(bm.geodesic)[:, r, c]  # [R, P, N]
+    ref = np.asarray(state.ref_geodesic).T[:, :, None]  # [R, P, 1]
+    dev = ((geo - ref) / float(wp.geo_sigma)) ** 2
+    want_geo = np.where(np.isfinite(geo).all(0), -0.5 * dev.sum(0), -np.inf)
+    z_pred = jnp.asarray([1900.0, 0.0])  # the second point has no depth yet: no term
+    dz = (np.asarray(bm.depth)[r, c] - np.asarray(z_pred)[:, None]) / float(wp.depth_sigma)
+    want_depth = np.where(np.asarray(z_pred)[:, None] > 0, -0.5 * dz * dz, 0.0)
+    geo_j = jax.jit(pf.geodesic_term)(wp, bm, state, rc)
+    depth_j = jax.jit(pf.depth_term)(wp, bm, rc, z_pred)
+    np.testing.assert_allclose(np.asarray(geo_j), want_geo, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(depth_j), want_depth, rtol=1e-5, atol=1e-4)
+    assert 0.2 < np.isfinite(want_geo).mean() < 1  # reached and unreached particles both
+    # vmapped over stacked particle sets, each set as alone
+    rcs = jnp.stack([rc, rc[:, ::-1]])
+    geo_v = jax.vmap(pf.geodesic_term, in_axes=(None, None, None, 0))(wp, bm, state, rcs)
+    np.testing.assert_allclose(np.asarray(geo_v[0]), want_geo, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(geo_v[1]), want_geo[:, ::-1], rtol=1e-5, atol=1e-4)
+    # the weights are the sum of the terms on the body and -inf off it
+    on = np.asarray(inside) & np.asarray(bm.body)[r, c]
+    spin, _ = jax.jit(lambda b, s, q, o: pf.spin_term(cfg, wp, b, s, q, o))(bm, state, rc, on)
+    lw, on_w, _ = jax.jit(lambda b, s, x, z: pf.point_weights(cfg, wp, b, s, x, z))(
+        bm, state, xy, z_pred
+    )
+    want = np.where(on, np.asarray(spin) + want_geo + want_depth, -np.inf)
+    want = np.where(np.isnan(want), -np.inf, want)
+    np.testing.assert_array_equal(np.asarray(on_w), on)
+    np.testing.assert_allclose(np.asarray(lw), want, rtol=1e-5, atol=1e-3)
+    assert 0 < on.mean() < 1  # both branches of the mask are exercised
+
+
+def test_resample_leaves_a_recovered_cloud_and_resamples_a_degenerate_one():
+    cfg = dataclasses.replace(BASE, ess_threshold=0.5)
+    n = cfg.n_particles
+    particles = jnp.broadcast_to(jnp.arange(n, dtype=jnp.float32)[:, None], (2, n, 4))
+    lw = jnp.full((2, n), -30.0).at[:, 7].set(0.0)  # one particle holds all the weight
+    lw = jax.vmap(lambda w: w - jax.nn.logsumexp(w))(lw)
+    recovered = jnp.array([True, False])
+    out, new_lw, resampled = jax.jit(lambda k, w, p, r: pf.point_resample(cfg, k, w, p, r))(
+        jax.random.PRNGKey(0), lw, particles, recovered
+    )
+    assert resampled.tolist() == [False, True]
+    np.testing.assert_array_equal(np.asarray(out[0]), np.asarray(particles[0]))
+    np.testing.assert_array_equal(np.asarray(out[1]), 7.0)
+    np.testing.assert_allclose(np.exp(np.asarray(new_lw[1])), 1.0 / n, rtol=1e-5)
+
+
+def test_body_model_stages_each_do_their_part(sequence):
+    _, inputs = sequence
+    depth, box = inputs.depth[3], inputs.box[3]
+    seg = jax.jit(lambda d, b: pb.segment_body(BASE, d, b))(depth, box)
+    surface = jax.jit(lambda s: pb.body_surface_graph(BASE, s))(seg)
+    ref, geo, _ = jax.jit(lambda s, f: pb.body_geodesics(BASE, s, f))(seg, surface)
+    body = np.asarray(seg.body)
+    # the figure (about 2 m away) and not the wall (3 m) behind it
+    assert 0.1 < body.mean() < 0.6
+    assert np.asarray(seg.depth)[body].max() < 2500
+    # mean edge length: a pixel's pitch (z * scale / f) and more along the diagonals
+    pitch = 2000.0 * float(seg.window.scale) / INTR.fx
+    assert pitch <= float(surface.mesh_resolution) <= 1.6 * pitch
+    assert not np.any(np.asarray(surface.spin_valid) & ~body)
+    g = np.asarray(geo[0])
+    r, c = np.asarray(ref[0])
+    assert body[r, c] and g[r, c] == 0.0
+    assert np.isfinite(g[body]).mean() > 0.9 and np.all(np.isinf(g[~body]))

@@ -148,11 +148,17 @@ def main(argv: list[str] | None = None) -> int:
         )
 
 
+def tune_process() -> bool:
+    """The CPU switches ``cpf-track`` turns on before JAX allocates (``--tune-malloc``):
+    ``cpu_tuning.tune_malloc()``; True when glibc took them."""
+    from cpf_jax.cpu_tuning import tune_malloc
+
+    return tune_malloc()
+
+
 def _run(args: argparse.Namespace) -> int:
     if args.tune_malloc:
-        from cpf_jax.cpu_tuning import tune_malloc
-
-        tune_malloc()
+        tune_process()
     _compile_cache(args.compile_cache)
     if args.particles < 1:
         raise UsageError(f"--particles must be >= 1, got {args.particles}")

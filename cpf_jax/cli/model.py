@@ -85,15 +85,11 @@ def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -
     intrinsics = calib.colour if calib is not None else source.intrinsics
     if intrinsics is None:
         intrinsics = _guessed_intrinsics(source)
-    point_kw = {"intrinsics": intrinsics}
     foreground = background is not None
-    if foreground:  # the union of the sizeable components inside the foreground
-        point_kw.update(seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05)
-    config = CascadeConfig(
-        box=box_config,
-        points=PointConfig(n_particles=args.point_particles, **point_kw),
-        foreground=foreground,
-    )
+    points_config = PointConfig(n_particles=args.point_particles, intrinsics=intrinsics)
+    if foreground:
+        points_config = points_config.with_foreground()
+    config = CascadeConfig(box=box_config, points=points_config, foreground=foreground)
     if args.points == "auto":
         points, names = _auto_points(config, inputs, background)
     else:

@@ -24,7 +24,13 @@ from cpf_jax.points.config import PointConfig
 
 __all__ = [
     "BodyModel",
+    "Segmentation",
+    "Surface",
     "body_centroid",
+    "segment_body",
+    "body_surface_graph",
+    "body_geodesics",
+    "assemble_body",
     "body_model",
     "body_extremities",
     "window_pixels",
@@ -147,14 +153,33 @@ def _geodesics(config: PointConfig, w: Array, body: Array, ref_pix: Array) -> tu
     return geo, jnp.max(sweeps)
 
 
-def body_model(
+class Segmentation(NamedTuple):
+    """The first stage of ``body_model``: the window's depth and its segmented body."""
+
+    window: dk.Window
+    rows: Array  # [Hw] frame rows sampled
+    cols: Array  # [Ww] frame cols sampled
+    depth: Array  # [Hw, Ww] hole-filled depth, mm
+    points: Array  # [Hw, Ww, 3] mm
+    body: Array  # [Hw, Ww] bool
+    tscale: Array  # [] or [Hw, Ww]: the thresholds' scale (module docstring)
+
+
+class Surface(NamedTuple):
+    """The second stage of ``body_model``: the body's surface graph and normals."""
+
+    weights: Array  # [4, Hw, Ww] surface graph
+    normals: Array  # [Hw, Ww, 3]
+    spin_valid: Array  # [Hw, Ww] bool: body pixel with a normal
+    mesh_resolution: Array  # [] mm
+
+
+def segment_body(
     config: PointConfig, depth: Array, box: Array, foreground: Array | None = None
-) -> BodyModel:
+) -> Segmentation:
     """The body in the ``config.window`` window cut around ``box`` (xywh) of ``depth [H, W]``
-    (uint16 mm): holes filled (thesis 4.1.1), floor removed, segmented, back-projected,
-    its surface graph (edges up to ``surface_max_dist_mm``, 4.1.4), vertex normals (4.2.1),
-    mesh resolution and geodesic distances. ``foreground [H, W] bool`` (optional) limits
-    the body to foreground pixels."""
+    (uint16 mm): holes filled (thesis 4.1.1), back-projected, floor removed, segmented
+    (4.1.2); ``foreground [H, W] bool`` (optional) limits the body to foreground pixels."""
     d, win, rows, cols, roi = dk.crop_window(depth, box, config.window, config.box_margin)
     d = dk.fill_holes(d, roi)
     valid = d > 0
@@ -171,13 +196,57 @@ def body_model(
     if config.floor_max_tilt_deg is not None:
         valid = _without_floor(config, pts, valid, tscale)
     body = _segment(config, d, roi, valid, tscale)
-    w = gk.surface_graph(pts, body, config.surface_max_dist_mm * tscale)
-    normals, nvalid = dk.vertex_normals(pts, w, config.normal_smoothing)
-    mres = gk.mesh_resolution(w)
-    ref_pix = _reference_pixels(config, body)
-    geo, sweeps = _geodesics(config, w, body, ref_pix)
+    return Segmentation(win, rows, cols, d, pts, body, tscale)
+
+
+def body_surface_graph(config: PointConfig, seg: Segmentation) -> Surface:
+    """The body's surface graph (edges up to ``surface_max_dist_mm``, thesis 4.1.4), vertex
+    normals (4.2.1) and mesh resolution."""
+    w = gk.surface_graph(seg.points, seg.body, config.surface_max_dist_mm * seg.tscale)
+    normals, nvalid = dk.vertex_normals(seg.points, w, config.normal_smoothing)
+    return Surface(w, normals, seg.body & nvalid, gk.mesh_resolution(w))
+
+
+def body_geodesics(
+    config: PointConfig, seg: Segmentation, surface: Surface
+) -> tuple[Array, Array, Array]:
+    """``(reference pixels [R, 2], geodesic distances [R, Hw, Ww] mm, sweeps)`` over the
+    surface graph (thesis 4.3)."""
+    ref_pix = _reference_pixels(config, seg.body)
+    geo, sweeps = _geodesics(config, surface.weights, seg.body, ref_pix)
+    return ref_pix, geo, sweeps
+
+
+def body_model(
+    config: PointConfig, depth: Array, box: Array, foreground: Array | None = None
+) -> BodyModel:
+    """The segmented body of ``depth [H, W]`` (uint16 mm) in the window around ``box``
+    (xywh), with its surface and geodesic distances: ``segment_body``, then
+    ``body_surface_graph``, then ``body_geodesics``."""
+    seg = segment_body(config, depth, box, foreground)
+    surface = body_surface_graph(config, seg)
+    ref_pix, geo, sweeps = body_geodesics(config, seg, surface)
+    return assemble_body(seg, surface, ref_pix, geo, sweeps)
+
+
+def assemble_body(
+    seg: Segmentation, surface: Surface, ref_pix: Array, geo: Array, sweeps: Array
+) -> BodyModel:
+    """The ``BodyModel`` of the three stages' outputs."""
     return BodyModel(
-        win, rows, cols, d, body, pts, normals, body & nvalid, w, mres, ref_pix, geo, sweeps
+        seg.window,
+        seg.rows,
+        seg.cols,
+        seg.depth,
+        seg.body,
+        seg.points,
+        surface.normals,
+        surface.spin_valid,
+        surface.weights,
+        surface.mesh_resolution,
+        ref_pix,
+        geo,
+        sweeps,
     )
 
 

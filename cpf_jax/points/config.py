@@ -91,6 +91,14 @@ class PointConfig:
         if min(self.window) < 8:
             raise ValueError(f"window too small: {self.window}")
 
+    def with_foreground(self) -> PointConfig:
+        """These settings for a body limited to a foreground mask: the union of the
+        sizeable components, with the looser thresholds that keep a side-on person's near
+        arm and leg (apart from the trunk in depth) on it."""
+        return dataclasses.replace(
+            self, seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05
+        )
+
     @property
     def uses_spin(self) -> bool:
         return self.weighting in ("spin", "combined")

@@ -58,6 +58,13 @@ __all__ = [
     "PointState",
     "PointInfo",
     "point_init",
+    "point_predict",
+    "spin_term",
+    "geodesic_term",
+    "depth_term",
+    "point_weights",
+    "point_recover",
+    "point_resample",
     "point_step",
     "estimate_3d",
     "build_point_filter",
@@ -223,7 +230,7 @@ def estimate_3d(config: PointConfig, params: PointParams, state: PointState) -> 
     return ray_point(config.intrinsics, state.estimate, state.depth, off)
 
 
-def _predict(
+def point_predict(
     config: PointConfig, params: PointParams, keys, state: PointState, box: Array
 ) -> tuple[Array, Array, Array, Array]:
     """``(xy, velocity, previous estimate, predicted depth)`` after following the box and
@@ -245,7 +252,43 @@ def _predict(
     return xy, vel, prev_est, z_pred
 
 
-def _weigh(
+def spin_term(
+    config: PointConfig, params: PointWeightParams, bm: BodyModel, state: PointState, rc, on
+) -> tuple[Array, Array]:
+    """``(log-weight [P, N], spin completeness [P])`` of the spin images at window pixels
+    ``rc [P, N, 2]``: similarity C (eq. 4.7) over the temperature, ``lambda`` half the
+    median overlap over a point's particles on the body (``on [P, N]``)."""
+    p = rc.shape[0]
+    imgs, comp = _spin_images(config, bm, rc)  # [P, N, W, W]
+    ov = sk.overlap_count(imgs, state.ref_spin[:, None])
+    ov_on = jnp.where(on, ov.astype(jnp.float32), jnp.nan)
+    lam = jnp.nan_to_num(0.5 * jnp.nanmedian(ov_on, axis=1))
+    c = sk.spin_similarity(imgs, state.ref_spin[:, None], lam[:, None])
+    complete = jnp.sum(comp & on, 1) / jnp.maximum(jnp.sum(on, 1), 1)
+    return c / _per_point(params.spin_temperature, p), complete
+
+
+def geodesic_term(params: PointWeightParams, bm: BodyModel, state: PointState, rc) -> Array:
+    """``[P, N]`` log-weight ``-|g - g0|^2 / (2 geo_sigma^2)`` of the geodesic distances
+    ``g`` from the references at window pixels ``rc`` (thesis 4.3); ``-inf`` where one is
+    unreachable."""
+    p = rc.shape[0]
+    g = jnp.moveaxis(bm.geodesic[:, rc[..., 0], rc[..., 1]], 0, -1)  # [P, N, R]
+    dev = (g - state.ref_geodesic[:, None, :]) / _per_point(params.geo_sigma, p)[..., None]
+    reach = jnp.all(jnp.isfinite(g), -1)
+    return jnp.where(reach, -0.5 * jnp.sum(dev * dev, -1), -jnp.inf)
+
+
+def depth_term(params: PointWeightParams, bm: BodyModel, rc, z_pred: Array) -> Array:
+    """``[P, N]`` log-weight ``-(z - z_pred)^2 / (2 depth_sigma^2)`` of the surface depth at
+    window pixels ``rc`` against each point's predicted depth (0 where none is known)."""
+    p = rc.shape[0]
+    z = bm.depth[rc[..., 0], rc[..., 1]]
+    dz = (z - z_pred[:, None]) / _per_point(params.depth_sigma, p)
+    return jnp.where(z_pred[:, None] > 0, -0.5 * dz * dz, 0.0)
+
+
+def point_weights(
     config: PointConfig,
     params: PointWeightParams,
     bm: BodyModel,
@@ -253,35 +296,26 @@ def _weigh(
     xy: Array,
     z_pred: Array,
 ) -> tuple[Array, Array, Array]:
-    """``(log-weights [P, N], on body [P, N], spin completeness [P])`` (module docstring);
-    ``lambda`` of eq. 4.7 is half the median overlap over a point's particles on the body."""
+    """``(log-weights [P, N], on body [P, N], spin completeness [P])``: the sum of the
+    configured terms (a product of likelihoods, thesis 6.2), no weight off the body
+    (masked, thesis 4.4)."""
     p, n = xy.shape[:2]
     rc, inside = window_pixels(bm, xy, config.window)
     on = inside & bm.body[rc[..., 0], rc[..., 1]]
     lw = jnp.zeros((p, n), jnp.float32)
     complete = jnp.ones((p,), jnp.float32)
     if config.uses_spin:
-        imgs, comp = _spin_images(config, bm, rc)  # [P, N, W, W]
-        ov = sk.overlap_count(imgs, state.ref_spin[:, None])
-        ov_on = jnp.where(on, ov.astype(jnp.float32), jnp.nan)
-        lam = jnp.nan_to_num(0.5 * jnp.nanmedian(ov_on, axis=1))
-        c = sk.spin_similarity(imgs, state.ref_spin[:, None], lam[:, None])
-        lw = lw + c / _per_point(params.spin_temperature, p)
-        complete = jnp.sum(comp & on, 1) / jnp.maximum(jnp.sum(on, 1), 1)
+        spin, complete = spin_term(config, params, bm, state, rc, on)
+        lw = lw + spin
     if config.uses_geodesic:
-        g = jnp.moveaxis(bm.geodesic[:, rc[..., 0], rc[..., 1]], 0, -1)  # [P, N, R]
-        dev = (g - state.ref_geodesic[:, None, :]) / _per_point(params.geo_sigma, p)[..., None]
-        reach = jnp.all(jnp.isfinite(g), -1)
-        lw = lw + jnp.where(reach, -0.5 * jnp.sum(dev * dev, -1), -jnp.inf)
+        lw = lw + geodesic_term(params, bm, state, rc)
     if config.depth_consistency:
-        z = bm.depth[rc[..., 0], rc[..., 1]]
-        dz = (z - z_pred[:, None]) / _per_point(params.depth_sigma, p)
-        lw = lw + jnp.where(z_pred[:, None] > 0, -0.5 * dz * dz, 0.0)
+        lw = lw + depth_term(params, bm, rc, z_pred)
     lw = jnp.where(on, lw, -jnp.inf)
     return jnp.where(jnp.isnan(lw), -jnp.inf, lw), on, complete
 
 
-def _recover(
+def point_recover(
     params: PointMotionParams,
     key: Array,
     bm: BodyModel,
@@ -307,6 +341,20 @@ def _recover(
     return xy, vel, lw, recovered
 
 
+def point_resample(
+    config: PointConfig, key: Array, lw: Array, particles: Array, recovered: Array
+) -> tuple[Array, Array, Array]:
+    """``(particles [P, N, 4], log-weights [P, N], resampled [P])``: each point's cloud
+    resampled when its ESS is under ``ess_threshold * N`` (a cloud just re-drawn by the
+    recovery is uniform and is not)."""
+    threshold = jnp.where(recovered, 0.0, config.ess_threshold)
+    scheme = rs.SCHEMES[config.resampler]
+    keys = jax.random.split(key, lw.shape[0])
+    return jax.vmap(lambda k, w, x, t: rs.resample_if(k, w, x, t, scheme))(
+        keys, lw, particles, threshold
+    )
+
+
 def point_step(
     config: PointConfig, params: PointParams, key: Array, state: PointState, frame: PointFrame
 ) -> tuple[PointState, PointInfo]:
@@ -315,9 +363,9 @@ def point_step(
     k_pos, k_vel, k_rec, k_res = jax.random.split(key, 4)
     box = jnp.asarray(frame.box, jnp.float32)
     bm = body_model(config, frame.depth, box, frame.foreground)
-    xy, vel, prev_est, z_pred = _predict(config, params, (k_pos, k_vel), state, box)
-    lw, on, complete = _weigh(config, params.weights, bm, state, xy, z_pred)
-    xy, vel, lw, recovered = _recover(params.motion, k_rec, bm, prev_est, xy, vel, lw)
+    xy, vel, prev_est, z_pred = point_predict(config, params, (k_pos, k_vel), state, box)
+    lw, on, complete = point_weights(config, params.weights, bm, state, xy, z_pred)
+    xy, vel, lw, recovered = point_recover(params.motion, k_rec, bm, prev_est, xy, vel, lw)
     lw = jax.vmap(rs.normalise_log_weights)(lw)
     ess = jax.vmap(rs.effective_sample_size)(lw)
     wts = jnp.exp(lw)
@@ -325,10 +373,8 @@ def point_step(
     best = jnp.take_along_axis(xy, jnp.argmax(lw, axis=1)[:, None, None], axis=1)[:, 0]
     off = _per_point(params.estimate.joint_depth_offset, p)[:, 0]
     surface = point_3d(config, bm, mean, jnp.zeros_like(off))[:, 2]
-    threshold = jnp.where(recovered, 0.0, config.ess_threshold)  # a fresh cloud is uniform
-    scheme = rs.SCHEMES[config.resampler]
-    particles, lw, resampled = jax.vmap(lambda k, w, x, t: rs.resample_if(k, w, x, t, scheme))(
-        jax.random.split(k_res, p), lw, jnp.concatenate([xy, vel], -1), threshold
+    particles, lw, resampled = point_resample(
+        config, k_res, lw, jnp.concatenate([xy, vel], -1), recovered
     )
     new_state = PointState(
         particles,
