@@ -35,7 +35,7 @@ __all__ = [
     "body_extremities",
     "window_pixels",
     "pixel_centre",
-    "point_3d",
+    "surface_depth",
 ]
 
 
@@ -267,18 +267,15 @@ def pixel_centre(bm: BodyModel, rc: Array) -> Array:
     return dk.window_to_frame(bm.window, ji)
 
 
-def point_3d(config: PointConfig, bm: BodyModel, xy: Array, offset: Array) -> Array:
-    """3D points ``[P, 3]`` (mm) under frame positions ``xy [P, 2]``, pushed ``offset`` mm
-    further along the viewing ray (a tracked point is on the surface, a joint behind it).
-    The depth is the body's under ``xy`` (the nearest body pixel's off the body); the ray
-    goes through the estimate's own sub-pixel position; NaN without a body."""
+def surface_depth(config: PointConfig, bm: BodyModel, xy: Array) -> Array:
+    """``[...]`` mm: the body's depth under frame positions ``xy [..., 2]`` (the nearest body
+    pixel's off the body; 0 without a body)."""
     rc, inside = window_pixels(bm, xy, config.window)
     on = inside & bm.body[rc[..., 0], rc[..., 1]]
     ji = dk.frame_to_window(bm.window, xy)
     near, found = dk.nearest_true(bm.body, jnp.stack([ji[..., 1], ji[..., 0]], -1))
     rc = jnp.where(on[..., None], rc, near)
-    z = jnp.where(found, bm.depth[rc[..., 0], rc[..., 1]], 0.0)
-    return ray_point(config.intrinsics, xy, z, offset)
+    return jnp.where(found, bm.depth[rc[..., 0], rc[..., 1]], 0.0)
 
 
 def ray_point(intrinsics, xy: Array, z: Array, offset: Array) -> Array:

@@ -39,8 +39,8 @@ from cpf_jax.points.body import (
     BodyModel,
     body_model,
     pixel_centre,
-    point_3d,
     ray_point,
+    surface_depth,
     window_pixels,
 )
 from cpf_jax.points.config import PointConfig
@@ -372,7 +372,7 @@ def point_step(
     mean = jnp.sum(wts[..., None] * xy, axis=1)
     best = jnp.take_along_axis(xy, jnp.argmax(lw, axis=1)[:, None, None], axis=1)[:, 0]
     off = _per_point(params.estimate.joint_depth_offset, p)[:, 0]
-    surface = point_3d(config, bm, mean, jnp.zeros_like(off))[:, 2]
+    z_mean, z_best = jnp.split(surface_depth(config, bm, jnp.concatenate([mean, best])), 2)
     particles, lw, resampled = point_resample(
         config, k_res, lw, jnp.concatenate([xy, vel], -1), recovered
     )
@@ -383,13 +383,13 @@ def point_step(
         state.ref_geodesic,
         box,
         mean,
-        jnp.where(jnp.isfinite(surface), surface, z_pred),
+        jnp.where(z_mean > 0, z_mean, z_pred),
     )
     info = PointInfo(
         mean=mean,
         best=best,
-        mean3d=point_3d(config, bm, mean, off),
-        best3d=point_3d(config, bm, best, off),
+        mean3d=ray_point(config.intrinsics, mean, z_mean, off),
+        best3d=ray_point(config.intrinsics, best, z_best, off),
         ess=ess,
         on_body=jnp.mean(on, axis=1),
         recovered=recovered,
