@@ -64,7 +64,6 @@ if __name__ == "__main__":
 
 import datetime  # noqa: E402
 import json  # noqa: E402
-import subprocess  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -301,18 +300,8 @@ def time_baselines(scene: Scene, layer2: dict, config: CascadeConfig, repeats: i
 def untuned_cascade(repeats: int) -> dict | None:
     """``{N: ms}`` of the cascade in a fresh process without ``tune_malloc`` or the XLA flags
     (both process-wide): a plain ``jax.jit(filt.step)`` of the Python API."""
-    cmd = [sys.executable, __file__, "--cascade-only", "--no-tune-malloc", "--no-tune-xla"]
-    cmd.append(f"--repeats={repeats}")
-    env = dict(os.environ)
-    env.pop("XLA_FLAGS", None)
-    if XLA_FLAGS_GIVEN:
-        env["XLA_FLAGS"] = XLA_FLAGS_GIVEN
-    try:
-        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=1800, env=env)
-    except (subprocess.SubprocessError, OSError) as err:
-        print(f"untuned comparison failed: {err}", flush=True)
-        return None
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    args = ["--cascade-only", "--no-tune-malloc", "--no-tune-xla", f"--repeats={repeats}"]
+    return host.fresh_process_json(__file__, args, XLA_FLAGS_GIVEN)
 
 
 def _row(n: int, r: dict) -> str:

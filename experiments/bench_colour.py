@@ -126,7 +126,6 @@ if __name__ == "__main__" and ARGS.tune_xla:
 
 import datetime  # noqa: E402
 import json  # noqa: E402
-import subprocess  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -604,26 +603,19 @@ def _untuned_main_timings(repeats: int, without: str | None = "malloc") -> dict 
     """The main JAX timings from a fresh process without ``tune_malloc`` (``without="malloc"``)
     or without the ``--tune-xla`` flags (``"xla"``): both are process-wide settings.
     ``without=None``: the same settings as this process (a repeat in a fresh process)."""
-    cmd = [sys.executable, __file__, "--main-only", f"--repeats={repeats}", f"--stat={ARGS.stat}"]
-    env = dict(os.environ)
+    args = ["--main-only", f"--repeats={repeats}", f"--stat={ARGS.stat}"]
+    xla_flags = os.environ.get("XLA_FLAGS")
     if without is None:
         if not ARGS.tune_malloc:
-            cmd.append("--no-tune-malloc")
+            args.append("--no-tune-malloc")
         if not ARGS.tune_xla:
-            cmd.append("--no-tune-xla")
+            args.append("--no-tune-xla")
     elif without == "malloc":
-        cmd.append("--no-tune-malloc")
+        args.append("--no-tune-malloc")
     else:
-        cmd.append("--no-tune-xla")
-        env.pop("XLA_FLAGS", None)
-        if XLA_FLAGS_GIVEN:
-            env["XLA_FLAGS"] = XLA_FLAGS_GIVEN
-    try:
-        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=1800, env=env)
-    except (subprocess.SubprocessError, OSError) as err:
-        print(f"untuned comparison failed: {err}", flush=True)
-        return None
-    return json.loads(out.stdout.strip().splitlines()[-1])
+        args.append("--no-tune-xla")
+        xla_flags = XLA_FLAGS_GIVEN
+    return host.fresh_process_json(__file__, args, xla_flags)
 
 
 def main(args) -> dict:

@@ -27,7 +27,8 @@ per particle).
 Like ``bench_colour.py`` it calls ``cpu_tuning.tune_malloc()`` before JAX
 allocates (``--no-tune-malloc`` to skip) and adds
 ``cpu_tuning.xla_cpu_flags(library_fusions=False)`` to ``XLA_FLAGS``
-(``--no-tune-xla``).
+(``--no-tune-xla``), and times the grid-occlusion step again in a fresh process without
+either, the path a plain ``jax.jit(filt.step)`` of the Python API takes.
 """
 
 from __future__ import annotations
@@ -45,6 +46,9 @@ def _parse_args(argv=None):
     p.add_argument("--repeats", type=int, default=30, help="timed steps per setting")
     p.add_argument("--out", default=None, help="results path stem (default results/bench_rgbd)")
     p.add_argument("--figure-only", action="store_true", help="redraw the figure from the JSON")
+    p.add_argument(
+        "--steps-only", action="store_true", help="time grid-occlusion alone, print JSON (internal)"
+    )
     return p.parse_args(argv)
 
 
@@ -216,12 +220,14 @@ def _markdown(results: dict) -> str:
         "ms per frame (frames/s, share of the timed steps on the windowed histogram path: "
         "`RGBDInfo.windowed`; the other steps counted exactly on the whole frame, slower); "
         "the OpenCV + NumPy per-particle loop computes only the paper's per-cell terms "
-        "(module docstring)"
+        "(module docstring); plain jit: the grid-occlusion step in a fresh process without "
+        "the CPU switches, as the Python API runs it by default"
         + (f", scaled linearly above N = {BASELINE_MAX_N:,}" if max(ns) > BASELINE_MAX_N else "")
         + ".",
         "",
-        "| N | " + " | ".join(VARIANTS) + " | OpenCV loop | speed-up (grid-occlusion) |",
-        "|---:|" + "---:|" * (len(VARIANTS) + 2),
+        "| N | " + " | ".join(VARIANTS) + " | grid-occlusion, plain jit | OpenCV loop "
+        "| speed-up (grid-occlusion) |",
+        "|---:|" + "---:|" * (len(VARIANTS) + 3),
     ]
     for n in ns:
         r = results[str(n)]
@@ -232,16 +238,33 @@ def _markdown(results: dict) -> str:
         base = r["baseline_ms_per_frame"]
         scaled = " (scaled)" if n > BASELINE_MAX_N else ""
         speedup = base / r["grid-occlusion"]["ms_per_frame"]
+        plain = r["grid-occlusion"].get("ms_untuned")
+        plain = "-" if plain is None else f"{plain:.2f} ({1e3 / plain:.0f})"
         lines.append(
-            f"| {n:,} | " + " | ".join(cells) + f" | {base:.1f}{scaled} | {speedup:.0f}x |"
+            f"| {n:,} | "
+            + " | ".join(cells)
+            + f" | {plain} | {base:.1f}{scaled} | {speedup:.0f}x |"
         )
     return "\n".join(lines) + "\n"
+
+
+def untuned_steps(repeats: int, ns) -> dict | None:
+    """``{N: ms}`` of the grid-occlusion step in a fresh process without ``tune_malloc`` or the
+    XLA flags (both process-wide): a plain ``jax.jit(filt.step)`` of the Python API."""
+    args = ["--steps-only", "--no-tune-malloc", "--no-tune-xla", f"--repeats={repeats}"]
+    if max(ns) <= 1_000:
+        args.append("--quick")
+    return host.fresh_process_json(__file__, args, XLA_FLAGS_GIVEN)
 
 
 def main(args) -> dict:
     scene = _scene()
     repeats = 5 if args.quick else args.repeats
     ns = tuple(n for n in N_ALL if not args.quick or n <= 1_000)
+    if args.steps_only:
+        ms = {str(n): time_step("grid-occlusion", n, scene, repeats)["ms_per_frame"] for n in ns}
+        print(json.dumps(ms))
+        return {}
     load_before = os.getloadavg()
     results: dict = {}
     per_particle = None
@@ -260,6 +283,10 @@ def main(args) -> dict:
             + f"  OpenCV loop {r['baseline_ms_per_frame']:.1f} ms",
             flush=True,
         )
+    untuned = None if args.quick else untuned_steps(repeats, ns)
+    for n in ns:
+        plain = None if untuned is None else untuned[str(n)]
+        results[str(n)]["grid-occlusion"]["ms_untuned"] = plain
     results["meta"] = {
         "frame": f"512x424 walk_across_medium seed 0 frame {FRAME_INDEX}",
         "cpu": host.cpu_name(),

@@ -21,3 +21,25 @@ def cpu_name() -> str:
 def describe() -> str:
     """``"<CPU model> (<n> cores)"``."""
     return f"{cpu_name()} ({os.cpu_count()} cores)"
+
+
+def fresh_process_json(script: str, args: list[str], xla_flags: str | None) -> dict | None:
+    """The last stdout line, read as JSON, of ``python script *args`` in a fresh process with
+    ``XLA_FLAGS`` set to ``xla_flags`` (unset for None): the CPU switches are process-wide, so
+    a benchmark times the path without them in a process of its own. None (with a line on
+    stdout) when the process fails."""
+    import json
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    env.pop("XLA_FLAGS", None)
+    if xla_flags:
+        env["XLA_FLAGS"] = xla_flags
+    cmd = [sys.executable, script, *args]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=1800, env=env)
+    except (subprocess.SubprocessError, OSError) as err:
+        print(f"fresh-process comparison failed: {err}", flush=True)
+        return None
+    return json.loads(out.stdout.strip().splitlines()[-1])
