@@ -45,6 +45,7 @@ from cpf_jax.points import (
     PointState,
     body_extremities,
     body_model,
+    body_points_3d,
     build_point_filter,
     default_point_params,
 )
@@ -197,8 +198,7 @@ def body_surface(
     """``[Hw * Ww, 3]`` mm: camera-frame points of layer 2's segmented body in ``box`` (NaN
     off the body), as a step sees it; for display (``cpf-track`` logs it to Rerun)."""
     inp = layer2_frame(config, frame, jnp.asarray(box, jnp.float32), background)
-    bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
-    return jnp.where(bm.body[..., None], bm.points, jnp.nan).reshape(-1, 3)
+    return body_points_3d(body_model(config.points, inp.depth, inp.box, inp.foreground))
 
 
 def find_body_points(

@@ -197,6 +197,31 @@ def test_body_surface_is_the_walker_in_3d(walk):
     assert np.all((body[:, 2] > z.min() - 400) & (body[:, 2] < z.max() + 400))
 
 
+def test_a_step_reports_the_surface_it_segmented(walk):
+    """With ``report_surface`` a step's info carries the body that ``body_surface`` shows for
+    its box (what ``cpf-track`` logs instead of segmenting the frame twice); off, none."""
+    seq, idx, bg = walk
+    base = dataclasses.replace(_config(seq, n_points=16), foreground=True)
+    config = dataclasses.replace(base, points=dataclasses.replace(base.points, report_surface=True))
+    params = _params(config)
+    context = Context(background=bg, points=jnp.asarray(seq.joints2d[0, idx] + 0.5))
+    frames = [Frame(jnp.asarray(seq.colour[t]), jnp.asarray(seq.depth[t])) for t in (0, 1)]
+    key = jax.random.PRNGKey(0)
+    for cfg, reported in ((config, True), (base, False)):
+        filt = build_cascade(cfg)
+        state = jax.jit(filt.init)(params, key, frames[0], jnp.asarray(seq.boxes[0]), context)
+        _, info = jax.jit(filt.step)(params, key, state, frames[1])
+        if not reported:
+            assert info.points.surface is None
+            continue
+        shown = jax.jit(body_surface, static_argnums=0)(cfg, frames[1], info.box_used, bg)
+        got, want = np.asarray(info.points.surface), np.asarray(shown)
+        assert got.shape == want.shape == (cfg.points.window[0] * cfg.points.window[1], 3)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+        assert np.isfinite(got).all(axis=1).sum() > 200
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-3)
+
+
 def test_find_body_points_are_the_head_hands_and_feet(walk):
     """On a walker facing the camera the points found are his head, hands and feet
     (hands and feet ordered left to right in the image); under jit and vmap over

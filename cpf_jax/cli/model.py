@@ -86,7 +86,10 @@ def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -
     if intrinsics is None:
         intrinsics = _guessed_intrinsics(source)
     foreground = background is not None
-    points_config = PointConfig(n_particles=args.point_particles, intrinsics=intrinsics)
+    logged = bool(args.rrd or args.spawn or args.connect)  # the log shows the body's surface
+    points_config = PointConfig(
+        n_particles=args.point_particles, intrinsics=intrinsics, report_surface=logged
+    )
     if foreground:
         points_config = points_config.with_foreground()
     config = CascadeConfig(box=box_config, points=points_config, foreground=foreground)

@@ -31,6 +31,7 @@ class Row(NamedTuple):
     points2d: np.ndarray  # [P, 2] px (NaN: none)
     points3d: np.ndarray  # [P, 3] mm (NaN: none)
     box_used: np.ndarray  # [4] the box layer 2 worked in (the box itself without layer 2)
+    surface: np.ndarray | None = None  # [M, 3] mm layer 2's body points (logged runs)
 
 
 class Sinks:
@@ -92,8 +93,10 @@ class Sinks:
             names = list(self.model.points)
             log.log_points2d(i, row.points2d, labels=names)
             log.log_points3d(i, row.points3d, labels=names)
-            config, background = self.model.config, self.model.context.background
-            body = self.surface(config, frame, row.box_used, background)
+            body = row.surface  # the step's own; the first frame's is computed here
+            if body is None:
+                config, background = self.model.config, self.model.context.background
+                body = self.surface(config, frame, row.box_used, background)
             log.log_points3d(i, body, "body/surface", radius=0.004)
 
     def close(self, failing: bool = False) -> None:
@@ -132,9 +135,12 @@ def _step_row(model: Model, info: Any, ms: float) -> Row:
     if model.points:
         p2, p3 = np.asarray(info.points.mean), np.asarray(info.points.mean3d)
         used = np.asarray(info.box_used)
+        surface = info.points.surface
+        surface = None if surface is None else np.asarray(surface)
     else:
         p2, p3, used = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32), box
-    return Row(box, bool(info.lost), float(info.ess), ms, p2, p3, used)
+        surface = None
+    return Row(box, bool(info.lost), float(info.ess), ms, p2, p3, used, surface)
 
 
 def _record(results: Results, i: int, row: Row) -> None:

@@ -12,7 +12,7 @@
 body (thesis 4.1-4.3) and ``filter.py`` the point filter.
 """
 
-from cpf_jax.points.body import BodyModel, body_extremities, body_model
+from cpf_jax.points.body import BodyModel, body_extremities, body_model, body_points_3d
 from cpf_jax.points.config import (
     AUTO_POINTS,
     BODY_POINT_DEPTH_OFFSET_MM,
@@ -55,6 +55,7 @@ __all__ = [
     "PointWeightParams",
     "body_extremities",
     "body_model",
+    "body_points_3d",
     "build_point_filter",
     "default_point_params",
     "estimate_3d",

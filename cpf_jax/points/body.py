@@ -31,6 +31,7 @@ __all__ = [
     "body_surface_graph",
     "body_geodesics",
     "assemble_body",
+    "body_points_3d",
     "body_model",
     "body_extremities",
     "window_pixels",
@@ -248,6 +249,12 @@ def assemble_body(
         geo,
         sweeps,
     )
+
+
+def body_points_3d(bm: BodyModel) -> Array:
+    """``[Hw * Ww, 3]`` mm: the window's camera-frame points on the body, NaN off it (for
+    display)."""
+    return jnp.where(bm.body[..., None], bm.points, jnp.nan).reshape(-1, 3)
 
 
 def window_pixels(bm: BodyModel, xy: Array, shape: tuple[int, int]) -> tuple[Array, Array]:

@@ -72,6 +72,9 @@ class PointConfig:
     ess_threshold: float = 1.0  # 1.0: resample every frame (SIR)
     resampler: str = "systematic"
     max_sweeps: int = 64  # geodesic relaxation sweeps (converges in 3-8)
+    # PointInfo.surface carries the segmented body's 3D points (for a live display; off by
+    # default: [Hw * Ww, 3] per frame would fill a long scan's outputs).
+    report_surface: bool = False
 
     def __post_init__(self) -> None:
         if self.n_particles < 1:

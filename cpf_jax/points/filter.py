@@ -38,6 +38,7 @@ from cpf_jax.params import P, props, values
 from cpf_jax.points.body import (
     BodyModel,
     body_model,
+    body_points_3d,
     pixel_centre,
     ray_point,
     surface_depth,
@@ -151,6 +152,7 @@ class PointInfo(NamedTuple):
     mesh_resolution: Array  # [] mm
     sweeps: Array  # [] geodesic relaxation sweeps
     spin_complete: Array  # [P] fraction of spin supports that fit their patch
+    surface: Array | None = None  # [Hw * Ww, 3] mm body points (NaN off it), report_surface
 
 
 def _per_point(x: Array, p: int) -> Array:
@@ -398,6 +400,7 @@ def point_step(
         mesh_resolution=bm.mesh_resolution,
         sweeps=bm.sweeps,
         spin_complete=complete,
+        surface=body_points_3d(bm) if config.report_surface else None,
     )
     return new_state, info
 
