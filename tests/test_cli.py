@@ -580,3 +580,24 @@ def test_malloc_is_tuned_by_default_and_not_with_no_tune_malloc(tmp_path, monkey
     assert main([missing, "--particles", "0", "--no-tune-malloc"]) == 2
     assert calls == [1]
     assert "--particles must be >= 1" in capsys.readouterr().err
+
+
+def test_log_thread_runs_jobs_in_order_and_hands_back_the_first_error():
+    from cpf_jax.cli.run import LogThread
+
+    done = []
+    log = LogThread(depth=2)
+    for k in range(10):
+        log.submit(lambda k=k: done.append(k))
+    log.close()
+    assert done == list(range(10))
+
+    def fails():
+        raise OSError("disk full")
+
+    log = LogThread()
+    log.submit(fails)
+    log.submit(lambda: done.append("after"))  # skipped: the log has failed
+    with pytest.raises(OSError, match="disk full"):
+        log.close()
+    assert "after" not in done

@@ -18,7 +18,7 @@ from cpf_jax.cli.model import Model
 from cpf_jax.cli.summary import Results, new_results, point_errors, write_plot
 from cpf_jax.errors import CpfJaxError, ViewerUnavailable
 
-__all__ = ["Row", "Sinks", "track"]
+__all__ = ["LogThread", "Row", "Sinks", "track"]
 
 
 class Row(NamedTuple):
@@ -32,6 +32,51 @@ class Row(NamedTuple):
     points3d: np.ndarray  # [P, 3] mm (NaN: none)
     box_used: np.ndarray  # [4] the box layer 2 worked in (the box itself without layer 2)
     surface: np.ndarray | None = None  # [M, 3] mm layer 2's body points (logged runs)
+
+
+class LogThread:
+    """The Rerun log written on a thread of its own, so that encoding the images (JPEG, PNG)
+    overlaps the next step instead of adding to it. Frames go through a queue of
+    ``depth`` entries in order (a slower log holds the loop back instead of filling memory);
+    the first error a log call raises is raised again by the next ``submit`` or by
+    ``close``."""
+
+    def __init__(self, depth: int = 4) -> None:
+        import queue
+        import threading
+
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._work, name="cpf-track log", daemon=True)
+        self._thread.start()
+
+    def _work(self) -> None:
+        while True:
+            job = self._queue.get()
+            if job is None:
+                return
+            if self._error is None:
+                try:
+                    job()
+                except BaseException as e:  # handed to the loop's thread
+                    self._error = e
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def submit(self, job) -> None:
+        """Run ``job()`` on the log thread, after every job submitted before it."""
+        self._raise()
+        self._queue.put(job)
+
+    def close(self) -> None:
+        """Wait for the jobs submitted so far; raise the first error one of them raised."""
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
+        self._raise()
 
 
 class Sinks:
@@ -48,6 +93,7 @@ class Sinks:
             None,
             None,
         )
+        self.log_thread: LogThread | None = None
         # The logger first: an unreachable viewer fails before any file is written.
         if args.rrd or args.spawn or args.connect:
             import jax
@@ -57,6 +103,7 @@ class Sinks:
             self.logger = RerunLogger(
                 args.rrd, spawn=args.spawn, connect=args.connect, raw=args.log_raw
             )
+            self.log_thread = LogThread()
             if model.points:  # layer 2's segmented body, as a 3D point cloud
                 from cpf_jax.cascade import body_surface
 
@@ -78,7 +125,7 @@ class Sinks:
                 i, row.box, ess=round(row.ess, 2), lost=int(row.lost), ms=round(row.ms, 3), **extras
             )
         if self.logger is not None:
-            self._log(i, frame_np, frame, row, state)
+            self.log_thread.submit(lambda: self._log(i, frame_np, frame, row, state))
 
     def _log(self, i: int, frame_np, frame, row: Row, state: Any) -> None:
         log, source = self.logger, self.source
@@ -101,15 +148,18 @@ class Sinks:
 
     def close(self, failing: bool = False) -> None:
         """Close the CSV and the Rerun log. With ``failing`` (an exception is already on its
-        way), a viewer that cannot take the log is one warning line instead of an error
-        that would hide the first."""
+        way), a log that fails (a viewer that cannot take it) is one warning line instead
+        of an error that would hide the first."""
         if self.writer is not None:
             self.writer.close()
         if self.logger is None:
             return
         try:
-            self.logger.close()
-        except ViewerUnavailable as e:
+            try:
+                self.log_thread.close()
+            finally:
+                self.logger.close()
+        except Exception as e:
             if not failing:
                 raise
             print(f"cpf-track: warning: {e}", file=sys.stderr)
