@@ -328,9 +328,22 @@ def point_recover(
 ) -> tuple[Array, Array, Array, Array]:
     """Re-draw, with uniform weights and no velocity, the points whose every particle is
     off the body, around the body pixel nearest their last estimate (kept as predicted
-    when the body is empty); returns ``(xy, vel, lw, recovered [P])``."""
-    p = xy.shape[0]
+    when the body is empty); returns ``(xy, vel, lw, recovered [P])``. The search for the
+    nearest body pixel runs only in a frame where some point is lost (``lax.cond``)."""
     lost = jax.vmap(rs.all_weights_invalid)(lw)
+
+    def redraw(_):
+        return _redraw_lost(params, key, bm, prev_est, xy, vel, lw, lost)
+
+    def keep(_):
+        return xy, vel, lw, jnp.zeros_like(lost)
+
+    return jax.lax.cond(jnp.any(lost), redraw, keep, None)
+
+
+def _redraw_lost(params, key, bm, prev_est, xy, vel, lw, lost):
+    """``point_recover``'s re-draw of the ``lost [P]`` points."""
+    p = xy.shape[0]
     ji = dk.frame_to_window(bm.window, prev_est)
     near, found = dk.nearest_true(bm.spin_valid, jnp.stack([ji[:, 1], ji[:, 0]], -1))
     anchor = pixel_centre(bm, near)
