@@ -304,3 +304,37 @@ def test_body_model_stages_each_do_their_part(sequence):
     r, c = np.asarray(ref[0])
     assert body[r, c] and g[r, c] == 0.0
     assert np.isfinite(g[body]).mean() > 0.9 and np.all(np.isinf(g[~body]))
+
+
+def _border_median_reference(d, roi, valid, share):
+    """The border ring as ``roi & ~erode(roi)`` over the whole window."""
+    h = roi.shape[0]
+    rows = np.nonzero(roi.any(axis=1))[0]
+    r0, r1 = (rows[0], rows[-1]) if len(rows) else (0, h - 1)
+    edge = roi & ~np.asarray(dk.erode(jnp.asarray(roi)))
+    upper = (np.arange(h) < r0 + share * (r1 - r0))[:, None]
+    vals = d[edge & upper & valid]
+    return np.median(vals) if len(vals) else np.nan
+
+
+def test_roi_border_median_is_the_median_of_the_eroded_ring_under_jit_and_vmap():
+    rng = np.random.default_rng(0)
+    h, w = 24, 20
+    cases = []
+    for r0, r1, c0, c1 in [(3, 17, 2, 15), (0, 23, 0, 19), (5, 5, 1, 18), (2, 20, 7, 7)]:
+        roi = np.zeros((h, w), bool)
+        roi[r0 : r1 + 1, c0 : c1 + 1] = True
+        cases.append(roi)
+    cases.append(np.zeros((h, w), bool))  # an empty ROI: no border, NaN
+    d = rng.integers(500, 4000, (len(cases), h, w)).astype(np.float32)
+    valid = rng.random((len(cases), h, w)) > 0.2
+    f = jax.jit(lambda a, b, c: pb.roi_border_median(a, b, c, 0.6))
+    batched = jax.jit(jax.vmap(lambda a, b, c: pb.roi_border_median(a, b, c, 0.6)))
+    got_v = np.asarray(batched(jnp.asarray(d), jnp.asarray(np.stack(cases)), jnp.asarray(valid)))
+    for k, roi in enumerate(cases):
+        want = _border_median_reference(d[k], roi, valid[k], 0.6)
+        got = float(f(jnp.asarray(d[k]), jnp.asarray(roi), jnp.asarray(valid[k])))
+        np.testing.assert_equal(got, want)
+        np.testing.assert_equal(got_v[k], want)
+    # no border: the empty ROI, and the one-row ROI (its row is not above 60 % of it)
+    assert np.isnan(got_v[[2, 4]]).all() and np.isfinite(got_v[[0, 1, 3]]).all()

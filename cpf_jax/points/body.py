@@ -32,6 +32,7 @@ __all__ = [
     "body_geodesics",
     "assemble_body",
     "body_points_3d",
+    "roi_border_median",
     "body_model",
     "body_extremities",
     "window_pixels",
@@ -77,19 +78,38 @@ def _without_floor(config: PointConfig, pts: Array, valid: Array, tscale: Array)
     return valid & ~floor
 
 
+def _span(mask: Array) -> tuple[Array, Array]:
+    """First and last index of a ``[n] bool`` run (0 and ``n - 1`` when it is empty)."""
+    n = mask.shape[0]
+    return jnp.argmax(mask), n - 1 - jnp.argmax(mask[::-1])
+
+
+def roi_border_median(d: Array, roi: Array, valid: Array, upper_share: float = 0.6) -> Array:
+    """Median of ``d [Hw, Ww]`` over the ``valid`` pixels of the border ring of the rectangle
+    ``roi`` (``roi & ~erode(roi)``) in its upper ``upper_share`` of rows; NaN when there are
+    none. The ring is read as its four sides (``2 (Hw + Ww)`` values, the corners once)
+    instead of a median over the whole window."""
+    h, w = roi.shape
+    rows_in, cols_in = jnp.any(roi, axis=1), jnp.any(roi, axis=0)
+    (r0, r1), (c0, c1) = _span(rows_in), _span(cols_in)
+    ok = valid & (jnp.arange(h) < r0 + upper_share * (r1 - r0))[:, None]
+    inner = rows_in & (jnp.arange(h) != r0) & (jnp.arange(h) != r1)
+    sides = (
+        jnp.where(cols_in & ok[r0], d[r0], jnp.nan),
+        jnp.where(cols_in & ok[r1] & (r1 != r0), d[r1], jnp.nan),
+        jnp.where(inner & ok[:, c0], d[:, c0], jnp.nan),
+        jnp.where(inner & ok[:, c1] & (c1 != c0), d[:, c1], jnp.nan),
+    )
+    return jnp.nanmedian(jnp.concatenate(sides))
+
+
 def _in_front(config: PointConfig, d: Array, roi: Array, labels: Array, valid: Array) -> Array:
     """The pixels of components at least ``background_margin_mm`` in front of the box's
     background, the median depth of the ROI's border in its upper 60 % (the floor fills the
     bottom rows): in a tight box around a side-on person the wall behind can be the
     largest component. When the largest such component is under 20 % of the largest
     overall, the rule is not trusted and every valid pixel stays eligible."""
-    h = config.window[0]
-    edge = roi & ~dk.erode(roi)
-    rows_in = jnp.any(roi, axis=1)
-    r0 = jnp.argmax(rows_in)
-    r1 = h - 1 - jnp.argmax(rows_in[::-1])
-    upper = (jnp.arange(h) < r0 + 0.6 * (r1 - r0))[:, None]
-    z_bg = jnp.nanmedian(jnp.where(edge & upper & valid, d, jnp.nan))
+    z_bg = roi_border_median(d, roi, valid, upper_share=0.6)
     zc = gk.component_mean(labels, d, valid)
     front = valid & (zc < z_bg - config.background_margin_mm)
     size = _component_sizes(labels, valid)
