@@ -14,6 +14,8 @@ Timed, every one a median of repeated calls in this process:
 * the cascade: one jitted ``build_cascade(config).step``;
 * the two layers jitted apart (layer 1's ``step``; layer 2's ``step`` on layer 1's box),
   whose sum against the cascade shows what one program gains or loses;
+* layer 1's pieces, each jitted alone: observe (foreground, bins, tables), propose, score
+  (cell terms and the flags' marginal likelihood), and the rest of its step;
 * layer 2 stage by stage, each jitted alone on the previous stage's outputs:
   segmentation (foreground mask, hole filling, floor, components), surface graph (and
   normals), geodesic distances, spin images (the spin term of eq. 4.7 at every particle),
@@ -89,6 +91,10 @@ from cpf_jax.points import BODY_POINTS, PointConfig  # noqa: E402
 from cpf_jax.points import body as pb  # noqa: E402
 from cpf_jax.points import filter as pf  # noqa: E402
 from cpf_jax.rgbd import RGBDConfig  # noqa: E402
+from cpf_jax.rgbd.depth import depth_template_predict  # noqa: E402
+from cpf_jax.rgbd.filter import score_particles  # noqa: E402
+from cpf_jax.rgbd.observe import observe as rgbd_observe  # noqa: E402
+from cpf_jax.rgbd.proposal import propose as rgbd_propose  # noqa: E402
 from cpf_jax.synthetic import make_sequence  # noqa: E402
 from cpf_jax.types import Frame  # noqa: E402
 
@@ -179,18 +185,37 @@ def layer2_inputs(scene: Scene, config: CascadeConfig, params):
     return state.points, info.box_used, info.layer1
 
 
-def time_layer1(scene: Scene, config: CascadeConfig, repeats: int) -> float:
-    """Layer 1's step jitted alone, from the cascade's initial state."""
+def time_layer1(scene: Scene, config: CascadeConfig, repeats: int) -> dict:
+    """Layer 1's step jitted alone from the cascade's initial state, and its first pieces
+    each jitted alone: observe (foreground, bins, tables), propose, score (cell terms and
+    the flags' marginal likelihood); "other" is the step less these (estimate, extent,
+    template updates, resampling)."""
     params = default_cascade_params(config)
+    cfg, p = config.box, params.box
     filt = build_cascade(config)
     key = jax.random.key(0)
     context = Context(background=scene.background, points=scene.points)
     state = jax.jit(lambda k, f, b: filt.init(params, k, f, b, context))(
         key, scene.first, jnp.asarray(scene.box)
-    )
-    box_filter = build_box_filter(config.box)
-    step = jax.jit(lambda k, s, f: box_filter.step(params.box, k, s, f))
-    return median_ms(step, key, state.box, scene.frame, repeats=repeats)
+    ).box
+    box_filter = build_box_filter(cfg)
+    step = jax.jit(lambda k, s_, f: box_filter.step(p, k, s_, f))
+    out = {"layer1_ms": median_ms(step, key, state, scene.frame, repeats=repeats)}
+    keys = tuple(jax.random.split(key, 4))
+    s = state._replace(depth=depth_template_predict(cfg, state.depth))
+    observe = jax.jit(lambda f, s_: rgbd_observe(cfg, p.foreground, f, s_.background))
+    obs = observe(scene.frame, s)
+    propose = jax.jit(lambda s_, o, d: rgbd_propose(cfg, p, keys, s_, o, d))
+    proposal = propose(s, obs, scene.frame.depth)
+    score = jax.jit(lambda s_, o, pr: score_particles(cfg, p, key, s_, o, pr))
+    stages = {
+        "observe": median_ms(observe, scene.frame, s, repeats=repeats),
+        "propose": median_ms(propose, s, obs, scene.frame.depth, repeats=repeats),
+        "score": median_ms(score, s, obs, proposal, repeats=repeats),
+    }
+    stages["other"] = out["layer1_ms"] - sum(stages.values())
+    out["stages"] = stages
+    return out
 
 
 def time_layer2(scene: Scene, config: CascadeConfig, repeats: int) -> dict:
@@ -351,6 +376,21 @@ def _markdown(results: dict) -> str:
     total = sum(stages.values())
     for name, ms in stages.items():
         lines.append(f"| {name.replace('_', ' ')} | {ms:.2f} | {100 * ms / total:.0f} % |")
+    lines += [
+        "",
+        "Layer 1's pieces (each jitted alone; 'other': estimate, extent, template updates, "
+        "resampling):",
+        "",
+        "| N | observe | propose | score (cells, flags) | other | layer 1 |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
+    for n in N_BOX:
+        r = results["by_n"][str(n)]
+        st = r["layer1_stages"]
+        lines.append(
+            f"| {n:,} | {st['observe']:.1f} | {st['propose']:.1f} | {st['score']:.1f} | "
+            f"{st['other']:.1f} | {r['layer1_ms']:.1f} |"
+        )
     base = results["baselines"]
     fps = results["cascade_fps"]
     gap = "reaches" if fps >= TARGET_FPS else "is short of"
@@ -378,7 +418,8 @@ def main(args) -> dict:
     for n in N_BOX:
         config = cascade_config(scene, n)
         cascade_ms, _ = time_cascade(scene, n, repeats)
-        layer1_ms = time_layer1(scene, config, repeats)
+        layer1 = time_layer1(scene, config, repeats)
+        layer1_ms = layer1["layer1_ms"]
         colour_ms = time_colour_only(scene, n, repeats)
         baseline = baselines[f"layer1_opencv_ms_{n}"]
         baseline += baselines["geodesic_scipy_ms"] + baselines["spin_numpy_ms"]
@@ -391,8 +432,10 @@ def main(args) -> dict:
             "colour_only_ms": colour_ms,
             "colour_only_fps": 1e3 / colour_ms,
             "baseline_ms": baseline,
+            "layer1_stages": layer1["stages"],
         }
-        print(f"N={n:,}: " + ", ".join(f"{k} {v:.2f}" for k, v in by_n[str(n)].items()), flush=True)
+        shown = {k: v for k, v in by_n[str(n)].items() if k != "layer1_stages"}
+        print(f"N={n:,}: " + ", ".join(f"{k} {v:.2f}" for k, v in shown.items()), flush=True)
     untuned = None if args.quick else untuned_cascade(repeats)
     for n in N_BOX:
         by_n[str(n)]["cascade_ms_untuned"] = None if untuned is None else untuned[str(n)]

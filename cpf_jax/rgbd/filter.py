@@ -61,6 +61,7 @@ __all__ = [
     "RGBDState",
     "RGBDInfo",
     "rgbd_init",
+    "score_particles",
     "rgbd_step",
     "build_rgbd_filter",
 ]
@@ -139,7 +140,9 @@ def rgbd_init(
     )
 
 
-def _score(config: RGBDConfig, params: RGBDParams, key: Array, state: RGBDState, obs, proposal):
+def score_particles(
+    config: RGBDConfig, params: RGBDParams, key: Array, state: RGBDState, obs, proposal
+):
     """Log-likelihood ``[N]`` of the proposed particles (flags marginalised, aspect prior,
     proposal correction), their new flags and per-cell occlusion posteriors ``[N, C]``,
     and the cell terms."""
@@ -202,7 +205,7 @@ def rgbd_step(
     state = state._replace(depth=depth_template_predict(config, state.depth))
     obs = observe(config, params.foreground, frame, state.background)
     proposal = propose(config, params, (k_prop, k_spread, k_det, k_rec), state, obs, frame.depth)
-    log_lik, post, terms = _score(config, params, k_flag, state, obs, proposal)
+    log_lik, post, terms = score_particles(config, params, k_flag, state, obs, proposal)
     lw, invalid, ess, log_evidence = rs.reweight(state.cloud.log_weights, log_lik)
     w = jnp.exp(lw)
     est = box_ops.cxcywh_to_xywh((w @ proposal.particles)[..., jnp.array([0, 1, 4, 5])])
