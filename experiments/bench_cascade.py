@@ -156,13 +156,16 @@ def median_ms(fn, *args, repeats: int) -> float:
 
 
 def time_filter(filt, params, scene: Scene, context: Context, repeats: int):
-    """``(ms, state after the warm-up and timed steps)`` of one jitted ``filt.step``."""
+    """``(ms, windowed share)`` of one jitted ``filt.step``, its state carried from step to
+    step (``bench_colour.timed_steps``); the share is that of the timed steps whose layer 1
+    read its histograms from the static window (the others ran the exact whole-frame
+    fallback, slower)."""
     key = jax.random.key(0)
     init = jax.jit(lambda k, f, b: filt.init(params, k, f, b, context))
     step = jax.jit(lambda k, s, f: filt.step(params, k, s, f))
     state = init(key, scene.first, jnp.asarray(scene.box))
-    times, _, info = bench_colour.timed_steps(step, state, scene.frame, key, repeats, WARMUP)
-    return float(np.median(times) * 1e3), info
+    times, windowed, _ = bench_colour.timed_steps(step, state, scene.frame, key, repeats, WARMUP)
+    return float(np.median(times) * 1e3), windowed
 
 
 def time_cascade(scene: Scene, n: int, repeats: int) -> tuple[float, object]:
@@ -199,8 +202,8 @@ def time_layer1(scene: Scene, config: CascadeConfig, repeats: int) -> dict:
         key, scene.first, jnp.asarray(scene.box)
     ).box
     box_filter = build_box_filter(cfg)
-    step = jax.jit(lambda k, s_, f: box_filter.step(p, k, s_, f))
-    out = {"layer1_ms": median_ms(step, key, state, scene.frame, repeats=repeats)}
+    ms, windowed = time_filter(box_filter, p, scene, Context(background=scene.background), repeats)
+    out = {"layer1_ms": ms, "layer1_windowed": windowed}
     keys = tuple(jax.random.split(key, 4))
     s = state._replace(depth=depth_template_predict(cfg, state.depth))
     observe = jax.jit(lambda f, s_: rgbd_observe(cfg, p.foreground, f, s_.background))
@@ -283,8 +286,7 @@ def time_colour_only(scene: Scene, n: int, repeats: int) -> float:
         (float(scene.box[2]), float(scene.box[3])), scene.frame_hw
     )
     filt = build_colour_filter(config)
-    ms, _ = time_filter(filt, default_colour_params(), scene, Context(), repeats)
-    return ms
+    return time_filter(filt, default_colour_params(), scene, Context(), repeats)[0]
 
 
 def time_baselines(scene: Scene, layer2: dict, config: CascadeConfig, repeats: int) -> dict:
@@ -333,8 +335,10 @@ def _row(n: int, r: dict) -> str:
     untuned = r.get("cascade_ms_untuned")
     plain = f"{untuned:.1f} ({1e3 / untuned:.1f})" if untuned else "-"
     return (
-        f"| {n:,} | {r['cascade_ms']:.1f} ({r['cascade_fps']:.1f}) | {plain} | "
-        f"{r['layer1_ms']:.1f} | {r['layer2_ms']:.1f} | {r['layers_sum_ms']:.1f} | "
+        f"| {n:,} | {r['cascade_ms']:.1f} ({r['cascade_fps']:.1f}, "
+        f"{100 * r['cascade_windowed']:.0f} %) | {plain} | "
+        f"{r['layer1_ms']:.1f} ({100 * r['layer1_windowed']:.0f} %) | {r['layer2_ms']:.1f} | "
+        f"{r['layers_sum_ms']:.1f} | "
         f"{r['colour_only_ms']:.1f} ({r['colour_only_fps']:.0f}) | {r['baseline_ms']:.0f} | "
         f"{r['baseline_ms'] / r['cascade_ms']:.0f}x |"
     )
@@ -351,7 +355,9 @@ def _markdown(results: dict) -> str:
         f"`{meta['xla_flags'] or '(unset)'}`. Median of {meta['repeats']} calls.",
         f"Command: `{meta['command']}`",
         "",
-        "ms per frame (frames/s). Cascade: one jitted step, layer 1 grid-occlusion at N box "
+        "ms per frame (frames/s; for the cascade and layer 1 the share of the timed steps "
+        "whose layer 1 read its window, the others ran its exact whole-frame fallback). "
+        "Cascade: one jitted step, layer 1 grid-occlusion at N box "
         "particles, layer 2 five body points at 100 particles; plain jit: the same step in a "
         "fresh process without the CPU switches; layers apart: layer 1 and layer 2 each "
         "jitted alone, summed; baseline: OpenCV + NumPy per-cell loop (layer 1) + SciPy "
@@ -417,7 +423,7 @@ def main(args) -> dict:
     by_n = {}
     for n in N_BOX:
         config = cascade_config(scene, n)
-        cascade_ms, _ = time_cascade(scene, n, repeats)
+        cascade_ms, windowed = time_cascade(scene, n, repeats)
         layer1 = time_layer1(scene, config, repeats)
         layer1_ms = layer1["layer1_ms"]
         colour_ms = time_colour_only(scene, n, repeats)
@@ -433,8 +439,11 @@ def main(args) -> dict:
             "colour_only_fps": 1e3 / colour_ms,
             "baseline_ms": baseline,
             "layer1_stages": layer1["stages"],
+            "cascade_windowed": windowed,
+            "layer1_windowed": layer1["layer1_windowed"],
         }
         shown = {k: v for k, v in by_n[str(n)].items() if k != "layer1_stages"}
+        shown = {k: v for k, v in shown.items() if v is not None}
         print(f"N={n:,}: " + ", ".join(f"{k} {v:.2f}" for k, v in shown.items()), flush=True)
     untuned = None if args.quick else untuned_cascade(repeats)
     for n in N_BOX:
