@@ -38,11 +38,12 @@ import argparse
 import os
 import sys
 
+import host  # same folder: the CPU, its switches, fresh processes
+
 
 def _parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--no-tune-malloc", dest="tune_malloc", action="store_false")
-    p.add_argument("--no-tune-xla", dest="tune_xla", action="store_false")
+    host.add_cpu_switch_args(p)
     p.add_argument("--quick", action="store_true", help="few repeats, writes nothing")
     p.add_argument("--repeats", type=int, default=30, help="timed calls per measurement")
     p.add_argument("--out", default=None, help="results path stem (default results/bench_cascade)")
@@ -55,14 +56,8 @@ def _parse_args(argv=None):
 ARGS = _parse_args() if __name__ == "__main__" else _parse_args([])
 XLA_FLAGS_GIVEN = os.environ.get("XLA_FLAGS", "")
 MALLOC_TUNED = False
-if __name__ == "__main__":
-    from cpf_jax.cpu_tuning import tune_malloc, xla_cpu_flags
-
-    if ARGS.tune_malloc:
-        MALLOC_TUNED = tune_malloc()
-    _flag = xla_cpu_flags(library_fusions=False)
-    if ARGS.tune_xla and _flag not in XLA_FLAGS_GIVEN.split():
-        os.environ["XLA_FLAGS"] = f"{XLA_FLAGS_GIVEN} {_flag}".strip()
+if __name__ == "__main__":  # before JAX allocates and reads XLA_FLAGS: see cpf_jax.cpu_tuning
+    MALLOC_TUNED, XLA_FLAGS_GIVEN = host.cpu_switches(ARGS.tune_malloc, ARGS.tune_xla)
 
 import datetime  # noqa: E402
 import json  # noqa: E402
@@ -72,7 +67,6 @@ from pathlib import Path  # noqa: E402
 import bench_colour  # noqa: E402  (same folder: the timing loop)
 import bench_depth  # noqa: E402  (same folder: the layer-2 baselines)
 import bench_rgbd  # noqa: E402  (same folder: the layer-1 baseline)
-import host  # noqa: E402  (same folder: the CPU name)
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402

@@ -52,19 +52,12 @@ from __future__ import annotations
 import argparse
 import sys
 
+import host  # same folder: the CPU, its switches, fresh processes
+
 
 def _parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--tune-malloc", dest="tune_malloc", action="store_true", default=True)
-    p.add_argument("--no-tune-malloc", dest="tune_malloc", action="store_false")
-    p.add_argument(
-        "--tune-xla",
-        dest="tune_xla",
-        action="store_true",
-        default=True,
-        help="add cpu_tuning.xla_cpu_flags(library_fusions=False) to XLA_FLAGS (default)",
-    )
-    p.add_argument("--no-tune-xla", dest="tune_xla", action="store_false")
+    host.add_cpu_switch_args(p)
     p.add_argument("--quick", action="store_true", help="few repeats, skip table 3.2")
     p.add_argument("--repeats", type=int, default=50, help="timed steps per setting")
     p.add_argument(
@@ -109,20 +102,9 @@ import os  # noqa: E402
 ARGS = _parse_args() if __name__ == "__main__" else _parse_args([])
 #: XLA_FLAGS as the environment set them, before --tune-xla adds to them.
 XLA_FLAGS_GIVEN = os.environ.get("XLA_FLAGS", "")
-if __name__ == "__main__" and ARGS.tune_malloc:
-    # Before JAX (and NumPy's big buffers) allocate: see cpf_jax.cpu_tuning.
-    from cpf_jax.cpu_tuning import tune_malloc
-
-    MALLOC_TUNED = tune_malloc()
-else:
-    MALLOC_TUNED = False
-if __name__ == "__main__" and ARGS.tune_xla:
-    # Before JAX creates its CPU client, which reads XLA_FLAGS once.
-    from cpf_jax.cpu_tuning import xla_cpu_flags
-
-    _flag = xla_cpu_flags(library_fusions=False)
-    if _flag not in XLA_FLAGS_GIVEN.split():
-        os.environ["XLA_FLAGS"] = f"{XLA_FLAGS_GIVEN} {_flag}".strip()
+MALLOC_TUNED = False
+if __name__ == "__main__":  # before JAX allocates and reads XLA_FLAGS: see cpf_jax.cpu_tuning
+    MALLOC_TUNED, XLA_FLAGS_GIVEN = host.cpu_switches(ARGS.tune_malloc, ARGS.tune_xla)
 
 import datetime  # noqa: E402
 import json  # noqa: E402
@@ -130,7 +112,6 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
-import host  # noqa: E402  (same folder: the CPU name)
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
