@@ -89,7 +89,7 @@ def roi_border_median(d: Array, roi: Array, valid: Array, upper_share: float = 0
     ``roi`` (``roi & ~erode(roi)``) in its upper ``upper_share`` of rows; NaN when there are
     none. The ring is read as its four sides (``2 (Hw + Ww)`` values, the corners once)
     instead of a median over the whole window."""
-    h, w = roi.shape
+    h = roi.shape[0]
     rows_in, cols_in = jnp.any(roi, axis=1), jnp.any(roi, axis=0)
     (r0, r1), (c0, c1) = _span(rows_in), _span(cols_in)
     ok = valid & (jnp.arange(h) < r0 + upper_share * (r1 - r0))[:, None]
