@@ -42,11 +42,13 @@ rows are computed once, corner-major, then gathered and reduced in sequential
 chunks of ``chunk`` rects, so that no ``[N, n_bins]`` block exists.
 
 Exactness is never traded for speed. When some non-empty rect is not inside the
-window, or has 65,536 pixels or more, ``fallback=True`` switches with ``lax.cond``
-to the general path: one full-frame table, in ``uint16`` with each rect cut into
-the few pieces that keep every piece under 65,536 pixels, or in ``uint32`` with
-whole rects from ``WIDE_COUNTS_MIN_RECTS`` rects on. The predicate goes through
-``batch_all``, so that under ``vmap`` the ``cond`` stays a branch and only the path
+window, or has 65,536 pixels or more, ``fallback=True`` switches with ``lax.switch``
+to the next window of ``window_ladder`` that covers them (the window grown, a table
+of more pixels), and past the last one to the general path: one full-frame table,
+in ``uint16`` with each rect cut into the few pieces that keep every piece under
+65,536 pixels, or in ``uint32`` with whole rects from ``WIDE_COUNTS_MIN_RECTS``
+rects on. The predicate goes through
+``batch_all``, so that under ``vmap`` the ``switch`` stays a branch and only the path
 taken runs. ``fallback=False`` skips the check and counts each rect's intersection
 with the window (exact for the rects inside it, which ``window_covers`` tells);
 ``window=None`` is the general path directly. ``suggest_window`` sizes a window for
@@ -72,6 +74,7 @@ __all__ = [
     "grid_ncc",
     "window_origin",
     "window_covers",
+    "window_ladder",
     "batch_all",
     "uses_window",
     "suggest_window",
@@ -90,6 +93,15 @@ __all__ = [
 DEFAULT_BINS: tuple[int, int] = (8, 8)
 
 _U16_LIMIT = 1 << 16
+
+#: The window ladder (``window_ladder``): when the rects leave the configured window,
+#: ``rect_reduce`` tries windows grown by this factor per side, at most this many in all,
+#: each smaller than this share of the frame, before the whole-frame path. A table's
+#: cost is proportional to its pixels, so a cloud a little wider than the window pays a
+#: little more rather than the whole frame.
+LADDER_GROWTH = 1.6
+LADDER_RUNGS = 2
+LADDER_MAX_SHARE = 0.85
 
 #: Rects per sequential chunk: bounds the ``[chunk, n_bins]`` temporaries, which
 #: unchunked would be fresh pages on every call. 4096 keeps a chunk's integer counts
@@ -883,8 +895,21 @@ def rect_reduce(
             **options,
         )
         if fallback:
-            ok = batch_all(window_covers(rects, origin, shape, count_dtype))
-            out = lax.cond(ok, fast, general, rects)
+            branches = [fast]
+            for rung in window_ladder(shape, (fh, fw))[1:]:
+                branches.append(
+                    functools.partial(
+                        _window_counts,
+                        bins,
+                        origin=window_origin(rects, rung, (fh, fw)),
+                        shape=rung,
+                        dtype=count_dtype,
+                        window_check=True,
+                        **options,
+                    )
+                )
+            index = _rung_index(rects, shape, origin, (fh, fw), count_dtype)
+            out = lax.switch(index, [*branches, general], rects)
         else:
             out = fast(rects)
     if single:
@@ -920,7 +945,46 @@ def uses_window(
     fh, fw = frame_shape
     r, _ = _clipped_columns(rects, fw, fh)
     shape, origin = _window_placement(r, window, origin, (fh, fw))
-    return window_covers(r, origin, shape, _check_count_dtype(count_dtype))
+    index = _rung_index(r, shape, origin, (fh, fw), _check_count_dtype(count_dtype), vmapped=False)
+    return index < len(window_ladder(shape, (fh, fw)))
+
+
+def window_ladder(
+    window: tuple[int, int], frame_shape: tuple[int, int]
+) -> tuple[tuple[int, int], ...]:
+    """The static windows ``rect_reduce`` tries in turn: ``window`` (capped at the frame),
+    then each side grown by ``LADDER_GROWTH`` (rounded up to 16 px, capped) while the
+    grown window holds less than ``LADDER_MAX_SHARE`` of the frame, at most
+    ``LADDER_RUNGS`` windows; past the last one the whole-frame path counts."""
+    fh, fw = frame_shape
+    rungs = [(min(window[0], fh), min(window[1], fw))]
+    while len(rungs) < LADDER_RUNGS:
+        h, w = rungs[-1]
+        grown = (
+            min(math.ceil(h * LADDER_GROWTH / 16) * 16, fh),
+            min(math.ceil(w * LADDER_GROWTH / 16) * 16, fw),
+        )
+        if grown == (h, w) or grown[0] * grown[1] >= LADDER_MAX_SHARE * fh * fw:
+            break
+        rungs.append(grown)
+    return tuple(rungs)
+
+
+def _rung_index(rects, shape, origin, frame_shape, count_dtype, vmapped: bool = True) -> Array:
+    """Index ``int32 []`` of the first window of ``window_ladder(shape)`` that covers the
+    clipped ``rects`` (``window_covers``; the first at ``origin``, the others at their own
+    ``window_origin``), or the number of windows when none does. With ``vmapped`` each
+    test goes through ``batch_all``, so that the index stays unbatched under ``vmap``."""
+    rungs = window_ladder(shape, frame_shape)
+    covers = [window_covers(rects, origin, rungs[0], count_dtype)]
+    for rung in rungs[1:]:
+        covers.append(
+            window_covers(rects, window_origin(rects, rung, frame_shape), rung, count_dtype)
+        )
+    if vmapped:
+        covers = [batch_all(c) for c in covers]
+    misses = jnp.stack([~c for c in covers] + [jnp.asarray(False)])
+    return jnp.argmin(misses).astype(jnp.int32)
 
 
 # ----------------------------------------------------------------------------- histograms

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 from jax import Array, lax
 
@@ -138,8 +139,9 @@ def spin_images(
     pixels, clipped into the window; the oriented point of a query is its
     pixel's point and normal (an invalid query pixel gives an empty image).
     bin_size: mm (scalar, traced). Returns ``(images [N, width, width]
-    float32, complete [N] bool)``. Queries are processed ``batch_size`` at a
-    time (``lax.map``); results do not depend on it.
+    float32, complete [N] bool)``. Each distinct query pixel is computed once
+    (particles share pixels), ``batch_size`` pixels at a time in a loop that
+    stops after the last distinct one; results do not depend on either.
     """
     p = jnp.asarray(points, jnp.float32)
     nrm = jnp.asarray(normals, jnp.float32)
@@ -158,8 +160,38 @@ def spin_images(
 
     shape = q.shape[:-1]
     qf = q.reshape(-1, 2)
-    imgs, complete = lax.map(one, qf, batch_size=min(batch_size, max(qf.shape[0], 1)))
+    batch = min(batch_size, max(qf.shape[0], 1))
+    imgs, complete = _map_distinct(one, qf, w, batch, (width, width))
     return imgs.reshape(shape + (width, width)), complete.reshape(shape)
+
+
+def _map_distinct(one, queries: Array, w: int, batch: int, image_shape: tuple[int, int]):
+    """``one`` (pixel -> (image, complete)) at every row of ``queries [Q, 2]``, computed once
+    per distinct pixel: the distinct pixels are packed first (sorted by ``row * w + col``),
+    ``batch`` at a time, for as many batches as there are distinct pixels, then each query
+    reads its pixel's result."""
+    n = queries.shape[0]
+    n_pad = -(-n // batch) * batch
+    flat = queries[:, 0] * w + queries[:, 1]
+    order = jnp.argsort(flat)
+    sorted_flat = flat[order]
+    new = jnp.concatenate([jnp.ones((1,), bool), sorted_flat[1:] != sorted_flat[:-1]])
+    slot_sorted = jnp.cumsum(new.astype(jnp.int32)) - 1
+    slot = jnp.zeros((n,), jnp.int32).at[order].set(slot_sorted)
+    distinct = jnp.zeros((n_pad, 2), jnp.int32).at[slot].set(queries)
+    n_batches = (slot_sorted[-1] + batch) // batch
+    out = (jnp.zeros((n_pad, *image_shape), jnp.float32), jnp.zeros((n_pad,), bool))
+
+    def body(i, acc):
+        rows = lax.dynamic_slice_in_dim(distinct, i * batch, batch)
+        imgs, complete = jax.vmap(one)(rows)
+        return (
+            lax.dynamic_update_slice_in_dim(acc[0], imgs, i * batch, 0),
+            lax.dynamic_update_slice_in_dim(acc[1], complete, i * batch, 0),
+        )
+
+    imgs, complete = lax.fori_loop(0, n_batches, body, out)
+    return imgs[slot], complete[slot]
 
 
 def overlap_count(a: Array, b: Array) -> Array:

@@ -39,7 +39,13 @@ from cpf_jax.colour.templates import (
 from cpf_jax.dynamics import propagate
 from cpf_jax.filter import Cloud, Filter, track, track_boxes
 from cpf_jax.kernels.boxes import iou, xywh_to_rect
-from cpf_jax.kernels.histogram import box_histograms, grid_ncc, integral_image, rect_sums
+from cpf_jax.kernels.histogram import (
+    box_histograms,
+    grid_ncc,
+    integral_image,
+    rect_sums,
+    window_ladder,
+)
 from cpf_jax.types import Frame
 
 H, W = 120, 160
@@ -399,9 +405,10 @@ def test_windowed_filter_tracks_with_and_without_containment(seq, contain):
 
 
 def test_info_reports_whether_the_window_path_ran(seq):
-    # A settled cloud is counted in the window; particles whose boxes outgrow the
-    # window take the exact whole-frame fallback and the step says so; without a
-    # window there is no windowed path. The estimate stays the same either way.
+    # A settled cloud is counted in the window; a particle whose box outgrows the
+    # window but not the ladder's grown one is still windowed; one that covers the frame
+    # takes the exact whole-frame fallback and the step says so; without a window there
+    # is no windowed path.
     frames, boxes = seq
     config = ColourConfig(n_particles=64).with_window((20, 50), (H, W))
     filt = build_colour_filter(config)
@@ -412,10 +419,13 @@ def test_info_reports_whether_the_window_path_ran(seq):
     step = jax.jit(filt.step)
     _, info = step(PARAMS, jax.random.key(1), state, f1)
     assert bool(info.windowed)
-    grown = state.cloud.particles.at[0, 5].set(config.window[0] + 10.0)
-    big = state._replace(cloud=state.cloud._replace(particles=grown))
-    _, info_big = step(PARAMS, jax.random.key(1), big, f1)
-    assert not bool(info_big.windowed)
+    infos = []
+    for wh in ((20.0, config.window[0] + 10.0), (float(W), float(H))):
+        grown = state.cloud.particles.at[0, 4:6].set(jnp.asarray(wh))
+        big = state._replace(cloud=state.cloud._replace(particles=grown))
+        infos.append(step(PARAMS, jax.random.key(1), big, f1)[1])
+    assert len(window_ladder(config.window, (H, W))) == 2
+    assert bool(infos[0].windowed) and not bool(infos[1].windowed)
     plain = build_colour_filter(ColourConfig(n_particles=64))
     state = plain.init(
         PARAMS, jax.random.key(0), Frame(frames.colour[0], frames.depth[0]), boxes[0]

@@ -415,9 +415,12 @@ def test_uses_window_is_the_path_rect_reduce_takes(frames):
         assert bool(fast) == _origin_and_covers(rects)[1], name
         seen.add(bool(fast))
     assert seen == {True, False}
-    # A given origin is used as is (here one that misses the cloud), a 1D rect works.
+    # A given origin places the first window as is (here one that misses the cloud, which
+    # the grown window of the ladder then covers at its own origin), a 1D rect works.
     far = jnp.asarray([FH - WINDOW[0], FW - WINDOW[1]], jnp.int32)
-    assert not bool(H.uses_window((FH, FW), jnp.asarray(cases["fits"]), WINDOW, far))
+    fits = B.clip_rect(jnp.asarray(cases["fits"]), FW, FH)
+    assert not bool(H.window_covers(fits, far, WINDOW))
+    assert bool(H.uses_window((FH, FW), fits, WINDOW, far))
     assert bool(H.uses_window((FH, FW), jnp.asarray([5, 5, 20, 20]), WINDOW))
     assert not bool(H.uses_window((FH, FW), jnp.asarray(cases["fits"]), None))
     # Under jit and vmap (over clouds).
@@ -463,6 +466,32 @@ def test_vmap_keeps_the_fallback_a_branch_and_stays_exact(frames):
             np.testing.assert_array_equal(g, _ref_hists(hsvs[0], r))
     text = batched.lower(bins[0], np.stack([fits, leaves])).as_text()
     assert "stablehlo.case" in text or "stablehlo.if" in text
+
+
+def test_window_ladder_counts_a_cloud_wider_than_the_window_on_a_grown_window(frames):
+    # The ladder: the window, then each side grown by LADDER_GROWTH (to 16 px) while the
+    # grown window holds less than LADDER_MAX_SHARE of the frame. A cloud that leaves the
+    # window but fits the grown one is counted there (reported windowed), exactly, under
+    # jit and vmap, in a real branch; one that fits neither takes the general path.
+    _, hsvs, bins = frames
+    assert H.window_ladder(WINDOW, (FH, FW)) == ((96, 128), (160, 208))
+    assert H.window_ladder((200, 300), (FH, FW)) == ((200, 300),)  # grown: > 85 % of frame
+    assert H.window_ladder((400, 500), (FH, FW)) == ((FH, FW),)
+    left, right = _cloud_rects(5, n=9, centre=(70, 120)), _cloud_rects(6, n=8, centre=(200, 120))
+    wide = np.concatenate([left[1], right[1]])  # about 170 x 70 px: rung 1 only
+    leaves = np.concatenate([_cloud_rects(4, n=16)[1], [[0, 100, FW, 140]]])
+    assert not _origin_and_covers(wide)[1] and _origin_and_covers(wide, (160, 208))[1]
+    assert bool(H.uses_window((FH, FW), jnp.asarray(wide), WINDOW))
+    assert not bool(H.uses_window((FH, FW), jnp.asarray(leaves), WINDOW))
+    np.testing.assert_array_equal(np.asarray(_fast(bins[0], wide)), _ref_hists(hsvs[0], wide))
+    batched = jax.jit(jax.vmap(_fast, in_axes=(None, 0)))
+    fits = _cloud_rects(1, n=len(wide))[1]
+    for clouds in (np.stack([fits, wide]), np.stack([wide, leaves])):
+        got = np.asarray(batched(bins[0], clouds))
+        for g, r in zip(got, clouds, strict=True):
+            np.testing.assert_array_equal(g, _ref_hists(hsvs[0], r))
+    text = batched.lower(bins[0], np.stack([fits, wide])).as_text()
+    assert "stablehlo.case" in text
 
 
 def test_uint16_limit_falls_back_and_int32_table_stays_fast(frames):

@@ -116,6 +116,29 @@ def test_spin_images_vmap_over_surfaces(surface):
     np.testing.assert_allclose(out[1], spin_loop(p2, n2, valid2, q, mres2), atol=2e-3, rtol=1e-4)
 
 
+def test_shared_query_pixels_are_computed_once_and_read_by_each_query(surface):
+    # Particles share pixels: each distinct pixel's image is computed once and every query
+    # on it reads that image. Against the loop, with repeats in any order and a clipped
+    # out-of-window query, under jit and vmap (two clouds with different repeats).
+    p, n, valid, mres = surface
+    distinct = np.array([[24, 20], [15, 25], [30, 12], [10, 18]])
+    picks = [np.array([2, 0, 2, 2, 1, 0, 3, 2, 0]), np.array([1, 1, 1, 1, 1, 1, 1, 1, 3])]
+    clouds = np.stack([distinct[i] for i in picks])
+    clouds[0, -1] = [60, 50]  # outside the 48 x 40 window: clipped to (47, 39)
+    f = jax.jit(
+        jax.vmap(lambda qq: sk.spin_images(p, n, valid, qq, mres, patch_radius=40, batch_size=2))
+    )
+    imgs, complete = f(clouds)
+    for got, qq in zip(np.asarray(imgs), clouds, strict=True):
+        clipped = np.minimum(qq, [47, 39])
+        ref = spin_loop(p, n, valid, clipped, mres)
+        np.testing.assert_allclose(got, ref, atol=2e-3, rtol=1e-4)
+        for i, j in zip(*np.nonzero((clipped[:, None] == clipped[None]).all(-1)), strict=True):
+            np.testing.assert_array_equal(got[i], got[j])
+    assert np.asarray(complete).all()
+    assert float(np.asarray(imgs)[1].sum()) > 0
+
+
 def test_small_patch_is_flagged_incomplete(surface):
     p, n, valid, mres = surface
     q = np.array([[24, 20], [20, 15]])

@@ -64,7 +64,7 @@ class PointConfig:
     # foreground mask, which has removed the background already).
     min_component_fraction: float | None = None
     patch_radius: int = 32  # window pixels visited per spin image (see kernels.spin)
-    spin_batch: int = 32  # spin images computed per lax.map step
+    spin_batch: int = 32  # distinct query pixels per spin-image loop step
     follow_box: bool = True
     # Temporal depth consistency: a particle whose surface depth departs from the
     # predicted depth of its point loses weight (``params.depth_sigma``).
