@@ -71,6 +71,7 @@ __all__ = [
     "beta_log_density",
     "coarse_counts",
     "window_sums",
+    "window_areas",
     "map_cell_of",
 ]
 
@@ -265,6 +266,19 @@ def window_sums(grid: Array, ry: Array, rx: Array) -> Array:
     x0 = jnp.clip(j - rx, 0, w)[None]
     x1 = jnp.clip(j + rx + 1, 0, w)[None]
     return sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0]
+
+
+def window_areas(shape: tuple[int, int], ry: Array, rx: Array) -> Array:
+    """``[h, w]`` cell counts of the windows of ``window_sums`` (its sums over a map of
+    ones), as products of the clipped row and column spans: exact integers, no gather."""
+    h, w = shape
+    ry = jnp.maximum(jnp.asarray(ry, jnp.int32), 0)
+    rx = jnp.maximum(jnp.asarray(rx, jnp.int32), 0)
+    i = jnp.arange(h)
+    j = jnp.arange(w)
+    rows = jnp.clip(i + ry + 1, 0, h) - jnp.clip(i - ry, 0, h)
+    cols = jnp.clip(j + rx + 1, 0, w) - jnp.clip(j - rx, 0, w)
+    return (rows[:, None] * cols[None]).astype(jnp.float32)
 
 
 def map_cell_of(xy: Array, stride: int, shape: tuple[int, int]) -> Array:

@@ -14,7 +14,7 @@ from scipy import stats
 from cpf_jax.dynamics import propagate
 from cpf_jax.filter import Context, track_boxes
 from cpf_jax.kernels.background import Background, median_background
-from cpf_jax.kernels.cells import coarse_counts, map_cell_of, window_sums
+from cpf_jax.kernels.cells import coarse_counts, map_cell_of, window_areas, window_sums
 from cpf_jax.metrics import summarise
 from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
 from cpf_jax.rgbd.filter import rgbd_init
@@ -72,6 +72,22 @@ def test_window_sums_match_a_loop():
             args,
             batch=items,
             rtol=1e-6,
+            atol=0.0,
+            variants=("plain", "jit", "vmap") if i == 0 else ("plain", "jit"),
+        )
+
+
+def test_window_areas_are_the_window_sums_of_ones():
+    radii = [(0, 0), (2, 3), (7, 20), (-1, 4)]  # clipped at the edges; a negative radius is 0
+    items = [(np.int32(ry), np.int32(rx)) for ry, rx in radii]
+    ones = np.ones((11, 17), np.float32)
+    for i, args in enumerate(items):
+        check_kernel(
+            lambda ry, rx: window_areas((11, 17), ry, rx),
+            lambda ry, rx: _window_sums_ref(ones, max(int(ry), 0), max(int(rx), 0)),
+            args,
+            batch=items,
+            rtol=0.0,
             atol=0.0,
             variants=("plain", "jit", "vmap") if i == 0 else ("plain", "jit"),
         )

@@ -27,7 +27,7 @@ import numpy as np
 from jax import Array
 
 from cpf_jax.dynamics import MotionParams, guide_frame, height_scale, propagate
-from cpf_jax.kernels.cells import coarse_counts, map_cell_of, window_sums
+from cpf_jax.kernels.cells import coarse_counts, map_cell_of, window_areas, window_sums
 from cpf_jax.rgbd.config import RGBDConfig
 from cpf_jax.rgbd.depth import DepthTemplate, mean_known_depth, target_gate, target_like
 from cpf_jax.rgbd.flags import log_clip
@@ -166,10 +166,9 @@ def _tightness(counts: Array, ry: Array, rx: Array, ty: Array, tx: Array) -> Arr
     """``t = r (1 - r_ring)`` of a box of half-size ``(ry, rx)`` blocks at every cell of a
     block-share map: its share of target pixels, times the share missing from a ring
     ``(ty, tx)`` blocks wide around it (shares count only the part inside the frame)."""
-    ones = jnp.ones_like(counts)
-    inner, inner_area = window_sums(counts, ry, rx), window_sums(ones, ry, rx)
+    inner, inner_area = window_sums(counts, ry, rx), window_areas(counts.shape, ry, rx)
     outer = window_sums(counts, ry + ty, rx + tx)
-    outer_area = window_sums(ones, ry + ty, rx + tx)
+    outer_area = window_areas(counts.shape, ry + ty, rx + tx)
     r = inner / jnp.maximum(inner_area, 1.0)
     ring_area = outer_area - inner_area
     r_ring = jnp.where(ring_area > 0, (outer - inner) / jnp.maximum(ring_area, 1.0), 0.0)
