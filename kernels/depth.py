@@ -26,7 +26,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
-from jax import Array
+from jax import Array, lax
 
 from .graph import FORWARD, neighbour
 
@@ -255,6 +255,9 @@ def vertex_normals(points: Array, weights: Array, smooth: int = 0) -> tuple[Arra
     px, py, pz = p[..., 0], p[..., 1], p[..., 2]
     vecs = [tuple(neighbour(c, dr, dc, 0.0) - c for c in (px, py, pz)) for dr, dc in RING]
     lens = [jnp.sqrt(a * a + b * b + c * c) for a, b, c in vecs]
+    # Each spoke serves two or three faces: materialise the spokes once (fused into every
+    # face, XLA on CPU would recompute them).
+    spokes, vecs, lens = lax.optimization_barrier((spokes, vecs, lens))
     ax = ay = az = jnp.zeros_like(px)
     nfaces = jnp.zeros(px.shape, jnp.int32)
     # Faces: consecutive spokes (k, k+1); where a diagonal spoke k+1 is missing,

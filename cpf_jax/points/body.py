@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax import Array
+from jax import Array, lax
 
 from cpf_jax.kernels import depth as dk
 from cpf_jax.kernels import graph as gk
@@ -70,7 +70,9 @@ def _without_floor(config: PointConfig, pts: Array, valid: Array, tscale: Array)
     """``valid`` less the floor: pixels whose smoothed normal lies within
     ``floor_max_tilt_deg`` of ``up`` (the floor touches the feet and, where its depth
     changes slowly from row to row, joins the body or outgrows it)."""
-    w_all = gk.surface_graph(pts, valid, config.surface_max_dist_mm * tscale)
+    w_all = lax.optimization_barrier(
+        gk.surface_graph(pts, valid, config.surface_max_dist_mm * tscale)
+    )  # materialised once (``body_surface_graph``)
     n_all, ok_all = dk.vertex_normals(pts, w_all, max(config.normal_smoothing, 1))
     up = jnp.asarray(config.up, jnp.float32)
     up = up / jnp.linalg.norm(up)
@@ -223,7 +225,11 @@ def segment_body(
 def body_surface_graph(config: PointConfig, seg: Segmentation) -> Surface:
     """The body's surface graph (edges up to ``surface_max_dist_mm``, thesis 4.1.4), vertex
     normals (4.2.1) and mesh resolution."""
-    w = gk.surface_graph(seg.points, seg.body, config.surface_max_dist_mm * seg.tscale)
+    # The barrier materialises the graph once: fused into its readers XLA on CPU would
+    # recompute the edge lengths for each of them.
+    w = lax.optimization_barrier(
+        gk.surface_graph(seg.points, seg.body, config.surface_max_dist_mm * seg.tscale)
+    )
     normals, nvalid = dk.vertex_normals(seg.points, w, config.normal_smoothing)
     return Surface(w, normals, seg.body & nvalid, gk.mesh_resolution(w))
 
