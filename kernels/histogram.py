@@ -47,12 +47,11 @@ to the next window of ``window_ladder`` that covers them (the window grown, a ta
 of more pixels), and past the last one to the general path: one full-frame table,
 in ``uint16`` with each rect cut into the few pieces that keep every piece under
 65,536 pixels, or in ``uint32`` with whole rects from ``WIDE_COUNTS_MIN_RECTS``
-rects on. The predicate goes through
-``batch_all``, so that under ``vmap`` the ``switch`` stays a branch and only the path
-taken runs. ``fallback=False`` skips the check and counts each rect's intersection
-with the window (exact for the rects inside it, which ``window_covers`` tells);
-``window=None`` is the general path directly. ``suggest_window`` sizes a window for
-a cloud of particle boxes.
+rects on. The predicates go through ``batch_all``, so that under ``vmap`` the
+``switch`` stays a branch and only the path taken runs. ``fallback=False`` skips
+the check and counts each rect's intersection with the window (exact for the rects
+inside it, which ``window_covers`` tells); ``window=None`` is the general path
+directly. ``suggest_window`` sizes a window for a cloud of particle boxes.
 """
 
 from __future__ import annotations
@@ -895,20 +894,20 @@ def rect_reduce(
             **options,
         )
         if fallback:
-            branches = [fast]
-            for rung in window_ladder(shape, (fh, fw))[1:]:
-                branches.append(
-                    functools.partial(
-                        _window_counts,
-                        bins,
-                        origin=window_origin(rects, rung, (fh, fw)),
-                        shape=rung,
-                        dtype=count_dtype,
-                        window_check=True,
-                        **options,
-                    )
+            placed = _ladder_placements(rects, shape, origin, (fh, fw))
+            branches = [fast] + [
+                functools.partial(
+                    _window_counts,
+                    bins,
+                    origin=rung_origin,
+                    shape=rung,
+                    dtype=count_dtype,
+                    window_check=True,
+                    **options,
                 )
-            index = _rung_index(rects, shape, origin, (fh, fw), count_dtype)
+                for rung, rung_origin in placed[1:]
+            ]
+            index = _rung_index(rects, placed, count_dtype)
             out = lax.switch(index, [*branches, general], rects)
         else:
             out = fast(rects)
@@ -945,8 +944,9 @@ def uses_window(
     fh, fw = frame_shape
     r, _ = _clipped_columns(rects, fw, fh)
     shape, origin = _window_placement(r, window, origin, (fh, fw))
-    index = _rung_index(r, shape, origin, (fh, fw), _check_count_dtype(count_dtype), vmapped=False)
-    return index < len(window_ladder(shape, (fh, fw)))
+    placed = _ladder_placements(r, shape, origin, (fh, fw))
+    index = _rung_index(r, placed, _check_count_dtype(count_dtype), vmapped=False)
+    return index < len(placed)
 
 
 def window_ladder(
@@ -970,17 +970,19 @@ def window_ladder(
     return tuple(rungs)
 
 
-def _rung_index(rects, shape, origin, frame_shape, count_dtype, vmapped: bool = True) -> Array:
-    """Index ``int32 []`` of the first window of ``window_ladder(shape)`` that covers the
-    clipped ``rects`` (``window_covers``; the first at ``origin``, the others at their own
-    ``window_origin``), or the number of windows when none does. With ``vmapped`` each
-    test goes through ``batch_all``, so that the index stays unbatched under ``vmap``."""
+def _ladder_placements(rects, shape, origin, frame_shape) -> list[tuple[tuple[int, int], Array]]:
+    """``(window, origin)`` of each window of ``window_ladder(shape)``: the first at
+    ``origin``, the others at their own ``window_origin`` of the clipped ``rects``."""
     rungs = window_ladder(shape, frame_shape)
-    covers = [window_covers(rects, origin, rungs[0], count_dtype)]
-    for rung in rungs[1:]:
-        covers.append(
-            window_covers(rects, window_origin(rects, rung, frame_shape), rung, count_dtype)
-        )
+    return [(rungs[0], origin)] + [(r, window_origin(rects, r, frame_shape)) for r in rungs[1:]]
+
+
+def _rung_index(rects, placed, count_dtype, vmapped: bool = True) -> Array:
+    """Index ``int32 []`` of the first placed window (``_ladder_placements``) that covers
+    the clipped ``rects`` (``window_covers``), or the number of windows when none does.
+    With ``vmapped`` each test goes through ``batch_all``, so that the index stays
+    unbatched under ``vmap``."""
+    covers = [window_covers(rects, o, rung, count_dtype) for rung, o in placed]
     if vmapped:
         covers = [batch_all(c) for c in covers]
     misses = jnp.stack([~c for c in covers] + [jnp.asarray(False)])
