@@ -151,6 +151,11 @@ class CascadeInfo(NamedTuple):
     points: PointInfo  # layer 2
     box_used: Array  # [4] xywh, the box layer 2 worked in
 
+    @property
+    def weighed_cloud(self):
+        """Layer 1's particles before resampling (``report_weights``), or None."""
+        return self.layer1.weighed_cloud
+
 
 def check_points(points_xy, frame_hw: tuple[int, int]) -> np.ndarray:
     """``[P, 2] float32`` initial points, or one clear ``ValueError``: each must be finite

@@ -15,7 +15,9 @@ a ``PointFrame`` for the point filter), ``box`` the initial ``(x, y, w, h)`` box
 Every box filter's state holds its particle cloud as ``state.cloud`` (:class:`Cloud`),
 and every box filter's info starts with the fields of ``BOX_INFO_FIELDS``: ``box`` (the
 box to score, ``[4]`` xywh), ``lost``, ``ess``, ``log_evidence``, ``estimate`` and
-``windowed``, then its own extras.
+``windowed``, then its own extras, the last of which is ``weighed_cloud``: the particles
+after they are weighed and before they are resampled (:class:`WeighedCloud`) when the config's
+``report_weights`` is on, else None.
 The command line, the Rerun logger, the tuner and the batch runner read only these.
 """
 
@@ -36,12 +38,15 @@ __all__ = [
     "BOX_INFO_FIELDS",
     "Filter",
     "Cloud",
+    "WeighedCloud",
+    "weighed_cloud",
     "Context",
     "at_rest",
     "uniform_cloud",
     "track",
     "track_boxes",
     "particle_boxes",
+    "cloud_boxes",
     "memoised_build",
 ]
 
@@ -73,6 +78,20 @@ class Cloud(NamedTuple):
     particles: Array  # [N, 8] (cx, cy, vx, vy, w, h, vw, vh), pixels and pixels per frame
     previous: Array  # [N, 8] each particle one frame earlier (second-order models)
     log_weights: Array  # [N] normalised
+
+
+class WeighedCloud(NamedTuple):
+    """A box filter's propagated particles and their weights before resampling, which
+    resets the weights to uniform: what a viewer colours the particles by."""
+
+    particles: Array  # [N, 8] as in Cloud
+    log_weights: Array  # [N] normalised
+
+
+def weighed_cloud(config: Any, particles: Array, log_weights: Array) -> WeighedCloud | None:
+    """The info's ``weighed_cloud`` field: the particles and weights when ``config.report_weights``
+    asks for them (an ``[N, 8]`` and an ``[N]`` array more per step), else None."""
+    return WeighedCloud(particles, log_weights) if config.report_weights else None
 
 
 class Context(NamedTuple):
@@ -133,11 +152,15 @@ def track_boxes(
     return boxes, lost
 
 
-def particle_boxes(state: Any) -> tuple[Array, Array]:
-    """``([N, 4] xywh boxes, [N] log-weights)`` of a box filter's particle cloud."""
-    cloud = state.cloud
+def cloud_boxes(cloud: Cloud | WeighedCloud) -> tuple[Array, Array]:
+    """``([N, 4] xywh boxes, [N] log-weights)`` of a particle cloud."""
     cols = jnp.array([0, 1, 4, 5])
     return box_ops.cxcywh_to_xywh(cloud.particles[:, cols]), cloud.log_weights
+
+
+def particle_boxes(state: Any) -> tuple[Array, Array]:
+    """``([N, 4] xywh boxes, [N] log-weights)`` of a box filter's particle cloud."""
+    return cloud_boxes(state.cloud)
 
 
 #: How many filters (the most recently used configs) each ``memoised_build`` builder keeps.

@@ -39,12 +39,20 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 from cpf_jax.errors import OutputError, ViewerUnavailable
-from cpf_jax.filter import particle_boxes
+from cpf_jax.filter import cloud_boxes
 from cpf_jax.types import Frame, Intrinsics
 
-__all__ = ["RerunLogger", "weight_colours", "IMAGE_SPACE", "check_viewer"]
+__all__ = [
+    "RerunLogger",
+    "weight_colours",
+    "default_blueprint",
+    "IMAGE_SPACE",
+    "check_viewer",
+    "viewer_executable",
+]
 
 IMAGE_SPACE = "world/camera"
 TIMELINE = "frame"
@@ -77,6 +85,34 @@ def weight_colours(weights: np.ndarray, log: bool = False) -> np.ndarray:
     return np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
 
 
+def default_blueprint(points: bool = True) -> rrb.Blueprint:
+    """The viewer's layout for a run: the colour image with the boxes, the particles and
+    the 2D body points; the depth image in a view of its own (drawn over the colour one
+    it would tint it); the 3D body beside the camera (``points``); ESS and step time.
+
+    Both image views share the colour camera's pinhole (``IMAGE_SPACE``), so they show
+    the same pixel grid; the 3D view holds the camera and what lies under ``world/body``.
+    """
+    image = rrb.Spatial2DView(
+        name="colour: tracker (green), ground truth (red)",
+        origin=IMAGE_SPACE,
+        contents=["$origin/**", "- $origin/depth"],
+    )
+    depth = rrb.Spatial2DView(name="depth", origin=IMAGE_SPACE, contents=["$origin/depth"])
+    series = rrb.Vertical(
+        rrb.TimeSeriesView(name="effective sample size", origin="series/ess"),
+        rrb.TimeSeriesView(name="ms per step", origin="series/ms_per_frame"),
+    )
+    side = [depth]
+    if points:
+        body = rrb.Spatial3DView(
+            name="body (3D)", origin="world", contents=["world/body/**", "world/camera"]
+        )
+        side.append(body)
+    layout = rrb.Horizontal(image, rrb.Vertical(*side), series, column_shares=[3, 2, 2])
+    return rrb.Blueprint(layout, collapse_panels=True)
+
+
 def _np(x: Any) -> np.ndarray:
     return np.asarray(x)
 
@@ -94,6 +130,8 @@ class RerunLogger:
       raw: log colour and depth pixels as they are, every frame (default: JPEG colour,
         PNG depth every ``depth_every``-th frame; see the module docstring).
       depth_every: log the depth image of every this many frames (compact logging).
+      blueprint: the viewer's layout, sent with the recording (default
+        :func:`default_blueprint`; None: Rerun's own heuristics).
 
     Any combination of the three sinks works; at least one is required.
     Call :meth:`close` (or use ``with``) so the ``.rrd`` file is finished.
@@ -109,6 +147,7 @@ class RerunLogger:
         recording_id: str | None = None,
         raw: bool = False,
         depth_every: int = DEPTH_EVERY,
+        blueprint: rrb.Blueprint | None | str = "default",
     ) -> None:
         if rrd is None and not spawn and connect is None:
             raise ValueError("RerunLogger needs an .rrd path, spawn=True or a connect URL")
@@ -141,6 +180,10 @@ class RerunLogger:
             if self.rrd is None:
                 raise
             raise OutputError(f"{self.rrd}: cannot write the Rerun recording ({e})") from None
+        if isinstance(blueprint, str):
+            blueprint = default_blueprint()
+        if blueprint is not None:
+            self.rec.send_blueprint(blueprint)
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
         self._pinhole: tuple[Intrinsics, int, int] | None = None
         self._closed = False
@@ -311,9 +354,13 @@ class RerunLogger:
             rr.Points3D(pts, labels=labels, colors=colours, radii=radius),
         )
 
-    def log_cloud(self, i: int, state: Any, path: str = "tracker/particles") -> None:
-        """The particles of any box filter's state (``state.cloud``), coloured by weight."""
-        boxes, log_weights = particle_boxes(state)
+    def log_cloud(
+        self, i: int, state: Any, path: str = "tracker/particles", *, weighed: Any = None
+    ) -> None:
+        """The particles of any box filter's state (``state.cloud``), coloured by weight, or
+        those of ``weighed`` (an info's ``weighed_cloud``: the weights before resampling,
+        which after it are uniform)."""
+        boxes, log_weights = cloud_boxes(state.cloud if weighed is None else weighed)
         self.log_particles(i, np.asarray(boxes), np.asarray(log_weights), path, log_weights=True)
 
     # -- scalars -----------------------------------------------------------------
@@ -344,17 +391,32 @@ class RerunLogger:
         self.close()
 
 
+def viewer_executable() -> str | None:
+    """The ``rerun`` viewer executable that ships with rerun-sdk (``rerun_cli``), found
+    even when the virtual environment's ``bin`` is not on ``PATH``; else the one on
+    ``PATH``, else None."""
+    import shutil
+
+    try:
+        import rerun_cli
+
+        bundled = Path(rerun_cli.__file__).parent / "rerun"
+        if bundled.is_file():
+            return str(bundled)
+    except ImportError:
+        pass
+    return shutil.which("rerun")
+
+
 def _spawn_viewer(rec: rr.RecordingStream) -> None:
     """Start a Rerun viewer for ``rec`` to stream to (port 9876), or raise one clear
     :class:`~cpf_jax.errors.ViewerUnavailable`.
 
-    The viewer is the ``rerun`` executable that ships with rerun-sdk (``rerun_cli``),
-    found even when the virtual environment's ``bin`` is not on ``PATH``. On Linux a
-    viewer window needs ``DISPLAY`` or ``WAYLAND_DISPLAY``; without one the run would
-    only fail when the log is flushed at its end.
+    The viewer is :func:`viewer_executable`. On Linux a viewer window needs ``DISPLAY``
+    or ``WAYLAND_DISPLAY``; without one the run would only fail when the log is flushed
+    at its end.
     """
     import os
-    import shutil
     import sys
 
     if sys.platform.startswith("linux") and not (
@@ -364,17 +426,8 @@ def _spawn_viewer(rec: rr.RecordingStream) -> None:
             "a Rerun viewer needs a display (DISPLAY / WAYLAND_DISPLAY unset): write --rrd FILE "
             "and open it elsewhere, or --connect to a viewer on another machine"
         )
-    exe = shutil.which("rerun")
     try:
-        import rerun_cli
-
-        bundled = Path(rerun_cli.__file__).parent / "rerun"
-        if bundled.is_file():
-            exe = str(bundled)
-    except ImportError:
-        pass
-    try:
-        rr.spawn(connect=False, executable_path=exe, recording=rec)
+        rr.spawn(connect=False, executable_path=viewer_executable(), recording=rec)
     except RuntimeError as e:
         raise ViewerUnavailable(f"cannot start a Rerun viewer: {str(e).splitlines()[0]}") from None
 

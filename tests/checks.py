@@ -10,7 +10,7 @@ from typing import Any
 import jax
 import numpy as np
 
-__all__ = ["assert_trees_close", "check_kernel"]
+__all__ = ["assert_trees_close", "check_kernel", "check_weighed_cloud"]
 
 
 def assert_trees_close(actual: Any, expected: Any, *, rtol: float, atol: float, where: str) -> None:
@@ -70,3 +70,30 @@ def check_kernel(
                 )
         else:
             raise ValueError(f"unknown variant {variant!r}; expected plain, jit or vmap")
+
+
+def check_weighed_cloud(filt_plain, filt_reporting, params, state, frames, where: str) -> None:
+    """A filter whose config has ``report_weights`` steps as the plain one (from the same
+    state, to float rounding: the extra output may change XLA's fusions) and reports the
+    particles before resampling: its state's particles are drawn from them, their weights
+    give the info's ESS, and they are not the uniform weights after it."""
+    import jax.numpy as jnp
+
+    plain_step, reporting_step = jax.jit(filt_plain.step), jax.jit(filt_reporting.step)
+    plain = state
+    for t, frame in enumerate(frames):
+        key = jax.random.PRNGKey(100 + t)
+        reporting, info = reporting_step(params, key, plain, frame)
+        plain, plain_info = plain_step(params, key, plain, frame)
+        assert plain_info.weighed_cloud is None, where
+        assert_trees_close(reporting, plain, rtol=1e-5, atol=1e-4, where=f"{where}, step {t}")
+        weighed = info.weighed_cloud
+        n = weighed.log_weights.shape[0]
+        w = np.exp(np.asarray(weighed.log_weights, np.float64))
+        np.testing.assert_allclose(w.sum(), 1.0, rtol=1e-5, err_msg=where)
+        np.testing.assert_allclose(1.0 / np.sum(w**2), float(info.ess), rtol=1e-3, err_msg=where)
+        assert np.ptp(w) > 0, f"{where}: the reported weights are uniform"
+        drawn = np.asarray(reporting.cloud.particles)[:, None, :]
+        hits = np.all(drawn == np.asarray(weighed.particles)[None], axis=-1).any(axis=1)
+        assert bool(info.resampled) and hits.all(), f"{where}: resampled particles not drawn"
+        assert float(jnp.max(jnp.abs(reporting.cloud.log_weights + np.log(n)))) < 1e-5

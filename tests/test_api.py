@@ -8,6 +8,7 @@ covered at the cost of tracing it.
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 
 import jax
@@ -113,6 +114,21 @@ def test_box_filters_share_their_info_fields_state_cloud_and_track(name):
     assert boxes.shape == (T, 4) and lost.shape == (T,)
     particles, log_weights = jax.eval_shape(cpf_jax.particle_boxes, state)
     assert particles.shape == (N, 4) and log_weights.shape == (N,)
+    # The weights before resampling are reported only when the config asks for them.
+    assert infos.weighed_cloud is None
+    reporting = _reporting_weights(config)
+    _, infos = jax.eval_shape(
+        lambda f, b, c: track(build(reporting), params, key, f, b, c), _frames(), BOX, context
+    )
+    assert infos.weighed_cloud.particles.shape == (T - 1, N, 8)
+    assert infos.weighed_cloud.log_weights.shape == (T - 1, N)
+
+
+def _reporting_weights(config):
+    """``config`` (or a cascade's layer 1) with ``report_weights`` on."""
+    if isinstance(config, CascadeConfig):
+        return dataclasses.replace(config, box=_reporting_weights(config.box))
+    return dataclasses.replace(config, report_weights=True)
 
 
 def test_the_point_filter_runs_through_the_same_track():

@@ -47,6 +47,19 @@ def test_tracks_folder_writes_csv_rrd_and_summary(folder, tmp_path, capsys):
 
     paths = {str(ch.entity_path) for ch in RrdReader(str(rrd)).stream()}
     assert any("tracker/box" in p for p in paths) and any("series/ess" in p for p in paths)
+    # The log colours the particles by their weights before resampling (after it they are
+    # uniform), times the steps only (the first frame ran init) and carries its layout.
+    rows = {}
+    for ch in RrdReader(str(rrd)).stream():
+        data = ch.to_record_batch().to_pydict()
+        for r in range(len(data.get("frame", []))):
+            row = {k: v[r] for k, v in data.items()}
+            rows.setdefault(str(ch.entity_path), {})[data["frame"][r]] = row
+    particles = rows["/world/camera/tracker/particles"]
+    colours = np.asarray(particles[3]["Points2D:colors"])
+    assert len(np.unique(colours)) > 1, "the particles are all one colour"
+    assert min(rows["/series/ms_per_frame"]) == 1
+    assert RrdReader(str(rrd)).blueprints()
 
 
 def test_init_override_and_max_frames(folder, tmp_path):

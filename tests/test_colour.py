@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from checks import check_kernel
+from checks import check_kernel, check_weighed_cloud
 
 from cpf_jax import params as pp
 from cpf_jax.colour import (
@@ -170,6 +170,15 @@ def test_step_state_and_info_are_finite_and_shaped(seq):
     assert 1.0 <= float(info.ess) <= 128.0
     for leaf in jax.tree_util.tree_leaves((state, info)):
         assert np.isfinite(np.asarray(leaf, np.float32)).all()
+
+
+def test_reports_the_weights_before_resampling_when_asked(seq):
+    frames, gt = seq
+    f0 = Frame(frames.colour[0], frames.depth[0])
+    state = jax.jit(FILTER.init)(PARAMS, jax.random.PRNGKey(0), f0, gt[0])
+    later = [Frame(frames.colour[t], frames.depth[t]) for t in range(1, 4)]
+    reporting = build_colour_filter(dataclasses.replace(CONFIG, report_weights=True))
+    check_weighed_cloud(FILTER, reporting, PARAMS, state, later, "colour")
 
 
 def test_no_retracing_from_frame_to_frame(seq):

@@ -10,11 +10,13 @@ are run by ``experiments/occlusion_tables.py`` (and by a slow test here).
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from checks import check_kernel
+from checks import check_kernel, check_weighed_cloud
 from scipy import stats
 
 from cpf_jax.colour import ColourConfig, bin_index, build_colour_filter, default_colour_params
@@ -625,6 +627,17 @@ def test_config_validation():
     c = RGBDConfig(grid=5)
     assert c.n_cells == 25 and not c.full_transition
     assert RGBDConfig(variant="rgbd", grid=3).n_cells == 1
+
+
+def test_reports_the_weights_before_resampling_when_asked(toy):
+    frames, gt, bg = toy
+    cfg = _config("grid-occlusion")
+    filt, params = build_rgbd_filter(cfg), default_rgbd_params(cfg)
+    f0 = Frame(frames.colour[0], frames.depth[0])
+    state = filt.init(params, jax.random.PRNGKey(0), f0, gt[0], Context(background=bg))
+    later = [Frame(frames.colour[t], frames.depth[t]) for t in range(1, 4)]
+    reporting = build_rgbd_filter(dataclasses.replace(cfg, report_weights=True))
+    check_weighed_cloud(filt, reporting, params, state, later, "grid-occlusion")
 
 
 def test_scan_vmap_and_no_retracing(toy):

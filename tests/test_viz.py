@@ -11,7 +11,7 @@ import pytest
 from rerun.chunk import RrdReader
 
 from cpf_jax.types import Frame, Intrinsics
-from cpf_jax.viz import RerunLogger, weight_colours
+from cpf_jax.viz import RerunLogger, default_blueprint, weight_colours
 
 T = 4
 
@@ -123,6 +123,44 @@ def test_colour_only_frames_skip_depth_and_pinhole(tmp_path):
     assert sorted(rrd["/world/camera/image"]["frames"]) == [0, 1]
     assert "/world/camera/depth" not in rrd
     assert "/world/camera" not in rrd
+
+
+def read_blueprint(path):
+    """``{view name: (origin, [content queries])}`` of the blueprint stored with a recording."""
+    reader = RrdReader(str(path))
+    (store,) = reader.blueprints()
+    rows = defaultdict(dict)
+    for ch in reader.stream(store=store):
+        data = ch.to_record_batch().to_pydict()
+        entity = str(ch.entity_path)
+        for k, v in data.items():
+            rows[entity.removesuffix("/ViewContents")][k] = v[-1]
+    views = {}
+    for row in rows.values():
+        if "ViewBlueprint:display_name" in row:
+            views[row["ViewBlueprint:display_name"][0]] = (
+                row["ViewBlueprint:space_origin"][0],
+                list(row.get("ViewContents:query") or []),
+            )
+    return views
+
+
+@pytest.mark.parametrize("points", [True, False])
+def test_the_recording_carries_its_viewer_layout(tmp_path, points):
+    path = tmp_path / "b.rrd"
+    with RerunLogger(path, blueprint=default_blueprint(points=points)) as log:
+        log.log_frame(0, frame(0))
+    views = read_blueprint(path)
+    colour = [v for name, v in views.items() if name.startswith("colour")]
+    # The colour view shows the boxes and particles but not the depth, which has its own.
+    assert colour == [("world/camera", ["$origin/**", "- $origin/depth"])]
+    assert views["depth"] == ("world/camera", ["$origin/depth"])
+    assert views["effective sample size"][0] == "series/ess"
+    assert views["ms per step"][0] == "series/ms_per_frame"
+    assert ("body (3D)" in views) == points
+    with RerunLogger(tmp_path / "none.rrd", blueprint=None) as log:
+        log.log_frame(0, frame(0))
+    assert RrdReader(str(tmp_path / "none.rrd")).blueprints() == []
 
 
 def test_weight_colours():

@@ -34,6 +34,11 @@ class Model(NamedTuple):
     points: tuple[str, ...]  # names of the body points (empty without --points)
 
 
+def logged(args: argparse.Namespace) -> bool:
+    """Whether the run writes a Rerun log (which asks the filters for what it shows)."""
+    return bool(args.rrd or args.spawn or args.connect)
+
+
 def _box_config(args: argparse.Namespace, options: tuple[dict, dict], box, frame_hw):
     """Layer 1's config and parameters: the colour layer for ``--model rgb``, else the
     RGB-D filter's variant, with a histogram window sized for the start box."""
@@ -46,6 +51,7 @@ def _box_config(args: argparse.Namespace, options: tuple[dict, dict], box, frame
         n_particles=args.particles,
         hierarchical=not args.no_hierarchical,
         resampler=args.resampler,
+        report_weights=logged(args),  # a logged run colours the particles by weight
         **config_kw,
     )
     if args.model == "rgb":
@@ -86,9 +92,8 @@ def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -
     if intrinsics is None:
         intrinsics = _guessed_intrinsics(source)
     foreground = background is not None
-    logged = bool(args.rrd or args.spawn or args.connect)  # the log shows the body's surface
-    points_config = PointConfig(
-        n_particles=args.point_particles, intrinsics=intrinsics, report_surface=logged
+    points_config = PointConfig(  # the log shows the body's surface
+        n_particles=args.point_particles, intrinsics=intrinsics, report_surface=logged(args)
     )
     if foreground:
         points_config = points_config.with_foreground()

@@ -32,6 +32,7 @@ class Row(NamedTuple):
     points3d: np.ndarray  # [P, 3] mm (NaN: none)
     box_used: np.ndarray  # [4] the box layer 2 worked in (the box itself without layer 2)
     surface: np.ndarray | None = None  # [M, 3] mm layer 2's body points (logged runs)
+    weighed: Any = None  # the box particles before resampling (logged runs), or None
 
 
 class LogThread:
@@ -94,14 +95,19 @@ class Sinks:
             None,
         )
         self.log_thread: LogThread | None = None
+        self.init_frame: int | None = None  # the frame init ran on: the first written
         # The logger first: an unreachable viewer fails before any file is written.
         if args.rrd or args.spawn or args.connect:
             import jax
 
-            from cpf_jax.viz import RerunLogger
+            from cpf_jax.viz import RerunLogger, default_blueprint
 
             self.logger = RerunLogger(
-                args.rrd, spawn=args.spawn, connect=args.connect, raw=args.log_raw
+                args.rrd,
+                spawn=args.spawn,
+                connect=args.connect,
+                raw=args.log_raw,
+                blueprint=default_blueprint(points=bool(model.points)),
             )
             self.log_thread = LogThread()
             if model.points:  # layer 2's segmented body, as a 3D point cloud
@@ -113,6 +119,8 @@ class Sinks:
             self.writer = ResultsWriter(args.out, extra_columns=("ess", "lost", "ms", *columns))
 
     def write(self, i: int, frame_np, frame, row: Row, state: Any) -> None:
+        if self.init_frame is None:
+            self.init_frame = i
         if self.writer is not None:
             extras = {}
             for n, name in enumerate(self.model.points):
@@ -130,12 +138,15 @@ class Sinks:
     def _log(self, i: int, frame_np, frame, row: Row, state: Any) -> None:
         log, source = self.logger, self.source
         log.log_frame(i, frame_np, source.intrinsics)
-        log.log_box(i, row.box, label="cpf")
+        # No labels: the two boxes often coincide, and their labels would overlap; the
+        # colour view's name says which colour is which.
+        log.log_box(i, row.box)
         if source.gt_boxes is not None and (source.visible is None or source.visible[i]):
-            log.log_gt_box(i, source.gt_boxes[i])
-        log.log_cloud(i, state)
+            log.log_gt_box(i, source.gt_boxes[i], label=None)
+        log.log_cloud(i, state, weighed=row.weighed)
         log.log_scalar(i, "ess", row.ess)
-        log.log_scalar(i, "ms_per_frame", row.ms)
+        if i != self.init_frame:  # steps only: the first frame ran init, not a step
+            log.log_scalar(i, "ms_per_frame", row.ms)
         if self.model.points:
             names = list(self.model.points)
             log.log_points2d(i, row.points2d, labels=names)
@@ -190,7 +201,9 @@ def _step_row(model: Model, info: Any, ms: float) -> Row:
     else:
         p2, p3, used = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32), box
         surface = None
-    return Row(box, bool(info.lost), float(info.ess), ms, p2, p3, used, surface)
+    weighed = info.weighed_cloud
+    weighed = None if weighed is None else type(weighed)(*map(np.asarray, weighed))
+    return Row(box, bool(info.lost), float(info.ess), ms, p2, p3, used, surface, weighed)
 
 
 def _record(results: Results, i: int, row: Row) -> None:

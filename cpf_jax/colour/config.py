@@ -113,6 +113,9 @@ class ColourConfig:
     # Boxes per sequential block of the histogram gathers (None: all at once); the
     # default suits a CPU's 2 MB L2 cache, a GPU wants None or a large value.
     chunk: int | None = DEFAULT_CHUNK
+    # The info carries the weighed particles before resampling (``filter.WeighedCloud``): a
+    # viewer colours them by weight.
+    report_weights: bool = False
 
     def __post_init__(self) -> None:
         checks = (

@@ -56,7 +56,16 @@ from cpf_jax.colour.templates import (
     layout_template_init,
     layout_template_update,
 )
-from cpf_jax.filter import Cloud, Context, Filter, at_rest, memoised_build, uniform_cloud
+from cpf_jax.filter import (
+    Cloud,
+    Context,
+    Filter,
+    WeighedCloud,
+    at_rest,
+    memoised_build,
+    uniform_cloud,
+    weighed_cloud,
+)
 from cpf_jax.kernels import boxes as box_ops
 from cpf_jax.kernels import resample as rs
 from cpf_jax.kernels.histogram import (
@@ -107,6 +116,7 @@ class ColourInfo(NamedTuple):
     estimate_distance: Array  # distance of the estimate's box
     resampled: Array  # bool
     weights_invalid: Array  # bool: every log-weight was NaN or -inf
+    weighed_cloud: WeighedCloud | None = None  # before resampling (config.report_weights)
 
 
 class Observation(NamedTuple):
@@ -307,6 +317,7 @@ def colour_step(
         estimate_distance=est_d,
         resampled=resampled,
         weights_invalid=weighed.invalid,
+        weighed_cloud=weighed_cloud(config, particles, weighed.log_weights),
     )
     return new_state, info
 

@@ -73,6 +73,9 @@ class RGBDConfig:
     # depth (None: on for "grid-occlusion" only, whose depth templates learn only in cells
     # voted visible).
     fast_depth_cap: bool | None = None
+    # The info carries the weighed particles before resampling (``filter.WeighedCloud``): a
+    # viewer colours them by weight.
+    report_weights: bool = False
 
     def __post_init__(self) -> None:
         lo, hi = self.depth_range

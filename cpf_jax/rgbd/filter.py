@@ -26,7 +26,16 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from cpf_jax.filter import Cloud, Context, Filter, at_rest, memoised_build, uniform_cloud
+from cpf_jax.filter import (
+    Cloud,
+    Context,
+    Filter,
+    WeighedCloud,
+    at_rest,
+    memoised_build,
+    uniform_cloud,
+    weighed_cloud,
+)
 from cpf_jax.kernels import boxes as box_ops
 from cpf_jax.kernels import resample as rs
 from cpf_jax.kernels.background import Background, update_background
@@ -96,6 +105,7 @@ class RGBDInfo(NamedTuple):
     target_occluded: Array  # bool: more than half of the cells voted occluded (or hidden)
     resampled: Array
     weights_invalid: Array
+    weighed_cloud: WeighedCloud | None = None  # before resampling (config.report_weights)
 
 
 def rgbd_init(
@@ -224,6 +234,7 @@ def rgbd_step(
         config, params, state, obs, frame, est, report, vote, voted, lost, extent.held
     )
     occluded_frames = jnp.where(target_occluded, state.occlusion.occluded_frames + 1, 0)
+    before_resampling = weighed_cloud(config, proposal.particles, lw)
     (particles, previous, flags), lw, resampled = rs.resample_if(
         k_res,
         lw,
@@ -258,6 +269,7 @@ def rgbd_step(
         target_occluded=target_occluded,
         resampled=resampled,
         weights_invalid=invalid,
+        weighed_cloud=before_resampling,
     )
     return new_state, info
 
