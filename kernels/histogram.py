@@ -1010,20 +1010,36 @@ def _scatter_counts(bins: Array, rects: Array, n_bins: int) -> Array:
     return jax.vmap(one)(flat_rects).reshape(rects.shape[:-1] + (n_bins,))
 
 
-def box_histograms(bins: Array, rects: Array, n_bins: int) -> Array:
+def box_histograms(
+    bins: Array, rects: Array, n_bins: int, window: tuple[int, int] | None = None
+) -> Array:
     """Exact histograms ``[N, n_bins] float32`` of ``rects [N, 4] (x0, y0, x1, y1) int32``.
 
     General, simple path for any rect list (clipped, empty, outside, larger than the
     frame). Up to ``SCATTER_MAX_RECTS`` rects (a static count) are counted by a masked
-    scatter-add over the frame each; more rects by the full-frame integral histogram
-    (``rect_reduce`` with ``window=None``). ``n_bins`` is static.
+    scatter-add each: over a static ``window = (h, w)`` placed on the rects when it covers
+    them (``window_origin``, ``window_covers``), else over the frame; the two give the
+    same counts, and a window a sixth of the frame costs a sixth. More rects are counted
+    by the full-frame integral histogram (``rect_reduce`` with ``window=None``).
+    ``n_bins`` is static.
     """
     rects = jnp.asarray(rects, jnp.int32)
     n_rects = math.prod(rects.shape[:-1])
-    if n_rects <= SCATTER_MAX_RECTS:
-        fh, fw = bins.shape
-        return _scatter_counts(bins, clip_rect(rects, fw, fh), n_bins)
-    return rect_reduce(bins, rects, lambda counts: counts, n_bins=n_bins)
+    if n_rects > SCATTER_MAX_RECTS:
+        return rect_reduce(bins, rects, lambda counts: counts, n_bins=n_bins)
+    fh, fw = bins.shape
+    rects = clip_rect(rects, fw, fh)
+    if window is None or (min(window[0], fh), min(window[1], fw)) == (fh, fw):
+        return _scatter_counts(bins, rects, n_bins)
+    shape, origin = _window_placement(rects, window, None, (fh, fw))
+
+    def in_window(_):
+        crop = lax.dynamic_slice(bins, (origin[0], origin[1]), shape)
+        shift = jnp.stack([origin[1], origin[0], origin[1], origin[0]])
+        return _scatter_counts(crop, rects - shift, n_bins)
+
+    covered = batch_all(window_covers(rects, origin, shape, count_dtype=jnp.int32))
+    return lax.cond(covered, in_window, lambda _: _scatter_counts(bins, rects, n_bins), None)
 
 
 # ----------------------------------------------------------------------------- distances

@@ -589,14 +589,17 @@ def test_histograms_of_frames_equal_calchist(frames, window):
 
     batch = list(zip(imgs, rect_sets, strict=True))
     check_kernel(kernel, reference, batch[0], batch=batch, **EXACT)
-    # box_histograms (scatter-add for few rects, the whole-frame table for more) too.
-    check_kernel(
-        lambda img, rects: H.box_histograms(_bins(img), rects, NB),
-        reference,
-        batch[2],
-        batch=[(img, rects[:10]) for img, rects in batch],
-        **EXACT,
-    )
+    # box_histograms (scatter-add for few rects, the whole-frame table for more) too,
+    # with and without a window to scatter in (the third set's edge rects leave it).
+    few = [(img, rects[:10]) for img, rects in batch[:2]] + [(batch[2][0], EDGE_RECTS[:10])]
+    for scatter_window in (None, WINDOW):
+        check_kernel(
+            lambda img, rects, w=scatter_window: H.box_histograms(_bins(img), rects, NB, w),
+            reference,
+            few[0],
+            batch=few,
+            **EXACT,
+        )
 
 
 @pytest.mark.parametrize("n_bins,count_dtype", [(9, jnp.uint16), (72, jnp.uint16), (9, jnp.int32)])
