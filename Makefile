@@ -28,6 +28,7 @@ bench: $(STAMP)
 	$(BIN)/python experiments/bench_rgbd.py
 	$(BIN)/python experiments/bench_batch.py
 	$(BIN)/python experiments/bench_cascade.py
+	$(BIN)/python experiments/soak.py
 
 # Every table and figure in experiments/results (about 3 hours on a 2-core CPU; the parts
 # on ../shared/data skip with a message when it is absent). Each script also runs alone.

@@ -615,3 +615,26 @@ def test_log_thread_runs_jobs_in_order_and_hands_back_the_first_error():
     with pytest.raises(OSError, match="disk full"):
         log.close()
     assert "after" not in done
+
+
+def test_rows_hold_copies_not_views_of_the_steps_arrays():
+    # A run keeps every row for its summary: a row that viewed a step's JAX array would keep
+    # that array's device buffer alive too, and a long run's memory would grow with it.
+    import jax.numpy as jnp
+
+    from cpf_jax.cli.run import _step_row
+    from cpf_jax.colour.filter import ColourInfo
+
+    box = jnp.arange(4.0, dtype=jnp.float32)
+    flag = jnp.asarray(False)
+    info = ColourInfo(
+        box, flag, jnp.float32(5), jnp.float32(0), box, flag, *(jnp.float32(0),) * 2, flag, flag
+    )
+
+    class Model:
+        points = ()
+
+    row = _step_row(Model(), info, 1.0)
+    np.testing.assert_array_equal(row.box, [0, 1, 2, 3])
+    assert row.box.flags.owndata and row.box.base is None
+    assert row.points2d.shape == (0, 2) and row.points3d.shape == (0, 3)

@@ -181,25 +181,31 @@ def _first_row(inputs: Inputs, model: Model, state: Any, ms: float) -> Row:
     pixel nearest each given point) with their 3D positions."""
     box = np.asarray(inputs.box, np.float32)
     if not model.points:
-        p2, p3 = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)
-        return Row(box, False, float(model.n_particles), ms, p2, p3, box)
+        return Row(box, False, float(model.n_particles), ms, *NO_POINTS, box)
     from cpf_jax.points import estimate_3d
 
-    p2 = np.asarray(state.points.estimate, np.float32)
-    p3 = np.asarray(estimate_3d(model.config.points, model.params.points, state.points))
+    p2 = np.array(state.points.estimate, np.float32)
+    p3 = np.array(estimate_3d(model.config.points, model.params.points, state.points))
     return Row(box, False, float(model.n_particles), ms, p2, p3, box)
 
 
+#: The points of a run without layer 2: one shared pair of empty arrays, not two per frame.
+NO_POINTS = (np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32))
+
+
 def _step_row(model: Model, info: Any, ms: float) -> Row:
-    """A step's row from the fields every box filter's info shares (and layer 2's points)."""
-    box = np.asarray(info.box)
+    """A step's row from the fields every box filter's info shares (and layer 2's points).
+
+    The values are copied out of JAX's arrays (``np.array``): a view (``np.asarray``) would
+    keep each step's device buffer alive for as long as the run keeps its rows."""
+    box = np.array(info.box, np.float32)
     if model.points:
-        p2, p3 = np.asarray(info.points.mean), np.asarray(info.points.mean3d)
-        used = np.asarray(info.box_used)
+        p2, p3 = np.array(info.points.mean), np.array(info.points.mean3d)
+        used = np.array(info.box_used)
         surface = info.points.surface
         surface = None if surface is None else np.asarray(surface)
     else:
-        p2, p3, used = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32), box
+        (p2, p3), used = NO_POINTS, box
         surface = None
     weighed = info.weighed_cloud
     weighed = None if weighed is None else type(weighed)(*map(np.asarray, weighed))
