@@ -338,3 +338,32 @@ def test_roi_border_median_is_the_median_of_the_eroded_ring_under_jit_and_vmap()
         np.testing.assert_equal(got_v[k], want)
     # no border: the empty ROI, and the one-row ROI (its row is not above 60 % of it)
     assert np.isnan(got_v[[2, 4]]).all() and np.isfinite(got_v[[0, 1, 3]]).all()
+
+
+def test_geodesic_edges_can_bridge_a_depth_jump_the_surface_graph_cuts():
+    # A side-on trunk and, beside it, a near arm 150 mm in front: the surface graph's 15 mm
+    # edges cut the arm off, so from the head it is unreachable; the geodesic graph with
+    # edges up to 200 mm reaches it across the jump, no shorter than the jump itself.
+    depth = np.full((H, W), 3000, np.uint16)
+    depth[20:110, 40:70] = 2000  # trunk, the head at its top
+    depth[50:90, 70:80] = 1850  # arm
+    box = jnp.asarray([30.0, 10.0, 60.0, 105.0])
+    cut = dataclasses.replace(BASE, min_component_fraction=0.05, floor_max_tilt_deg=None)
+    bridged = dataclasses.replace(cut, geodesic_max_dist_mm=200.0)
+    for config in (cut, bridged):
+        seg = jax.jit(lambda d, b, c=config: pb.segment_body(c, d, b))(jnp.asarray(depth), box)
+        surface = jax.jit(lambda s, c=config: pb.body_surface_graph(c, s))(seg)
+        _, geo, _ = jax.jit(lambda s, f, c=config: pb.body_geodesics(c, s, f))(seg, surface)
+        body, g = np.asarray(seg.body), np.asarray(geo[0])
+        arm = body & (np.asarray(seg.depth) < 1900)
+        trunk = body & ~arm
+        assert arm.sum() > 20 and trunk.sum() > 100, (arm.sum(), trunk.sum())
+        assert np.isfinite(g[trunk]).all()
+        if config is cut:
+            assert np.isinf(g[arm]).all()
+        else:
+            assert np.isfinite(g[arm]).all()
+            # every path onto the arm crosses the 150 mm jump from the trunk's edge beside it
+            a_col = np.nonzero(arm.any(0))[0][0]
+            edge = trunk[:, a_col - 1] & arm[:, a_col]
+            assert edge.any() and g[arm].min() >= g[edge, a_col - 1].min() + 140.0

@@ -238,9 +238,13 @@ def body_geodesics(
     config: PointConfig, seg: Segmentation, surface: Surface
 ) -> tuple[Array, Array, Array]:
     """``(reference pixels [R, 2], geodesic distances [R, Hw, Ww] mm, sweeps)`` over the
-    surface graph (thesis 4.3)."""
+    surface graph (thesis 4.3), or over the body's graph with edges up to
+    ``geodesic_max_dist_mm`` when that is set."""
     ref_pix = _reference_pixels(config, seg.body)
-    geo, sweeps = _geodesics(config, surface.weights, seg.body, ref_pix)
+    w = surface.weights
+    if config.geodesic_max_dist_mm is not None and config.uses_geodesic:
+        w = gk.surface_graph(seg.points, seg.body, config.geodesic_max_dist_mm * seg.tscale)
+    geo, sweeps = _geodesics(config, w, seg.body, ref_pix)
     return ref_pix, geo, sweeps
 
 

@@ -48,6 +48,11 @@ class PointConfig:
     # vector of distances per pixel. The head: the centroid moves with the limbs, and
     # its paths to a hand switch between the shoulder and a hand-on-thigh contact.
     references: tuple[str, ...] = ("head",)
+    # Edges of the graph the geodesic distances run over, in mm at ``threshold_depth_mm``
+    # (None: the surface graph's, ``surface_max_dist_mm``, thesis 4.3). Looser edges bridge
+    # the depth jumps that cut a side-on person's near arm off the trunk, where the
+    # surface graph leaves the hand unreachable from the head.
+    geodesic_max_dist_mm: float | None = None
     spin_width: int = 20  # App. G
     spin_bin_factor: float = 1.0  # bin size in mesh resolutions (App. G: 1-2)
     support_angle_deg: float = 60.0  # App. G: 60-90
@@ -91,6 +96,10 @@ class PointConfig:
             )
         if self.min_component_fraction is not None and not 0 < self.min_component_fraction <= 1:
             raise ValueError("min_component_fraction must be in (0, 1] or None")
+        if self.geodesic_max_dist_mm is not None and self.geodesic_max_dist_mm <= 0:
+            raise ValueError(
+                f"geodesic_max_dist_mm must be > 0 or None, got {self.geodesic_max_dist_mm}"
+            )
         if min(self.window) < 8:
             raise ValueError(f"window too small: {self.window}")
 
