@@ -33,7 +33,7 @@ from __future__ import annotations
 import socket
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 from urllib.parse import urlsplit
 
 import cv2
@@ -147,7 +147,7 @@ class RerunLogger:
         recording_id: str | None = None,
         raw: bool = False,
         depth_every: int = DEPTH_EVERY,
-        blueprint: rrb.Blueprint | None | str = "default",
+        blueprint: rrb.Blueprint | Literal["default"] | None = "default",
     ) -> None:
         if rrd is None and not spawn and connect is None:
             raise ValueError("RerunLogger needs an .rrd path, spawn=True or a connect URL")
@@ -181,6 +181,8 @@ class RerunLogger:
                 raise
             raise OutputError(f"{self.rrd}: cannot write the Rerun recording ({e})") from None
         if isinstance(blueprint, str):
+            if blueprint != "default":
+                raise ValueError(f"blueprint must be a Blueprint, 'default' or None: {blueprint!r}")
             blueprint = default_blueprint()
         if blueprint is not None:
             self.rec.send_blueprint(blueprint)
