@@ -24,9 +24,10 @@ def assert_trees_close(actual: Any, expected: Any, *, rtol: float, atol: float, 
         if a.dtype == bool or e.dtype == bool:
             np.testing.assert_array_equal(a, e, err_msg=f"{where}, output {i}")
         else:
+            wide = np.complex128 if np.iscomplexobj(a) or np.iscomplexobj(e) else np.float64
             np.testing.assert_allclose(
-                a.astype(np.float64),
-                e.astype(np.float64),
+                a.astype(wide),
+                e.astype(wide),
                 rtol=rtol,
                 atol=atol,
                 equal_nan=True,

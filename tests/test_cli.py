@@ -190,6 +190,23 @@ def test_histogram_only_model_from_the_command_line():
     assert ColourConfig(**config_kw, **colour_kw).contrast is None
 
 
+def test_the_learnt_terms_from_the_command_line():
+    """--correlation and --follow-camera switch the correlation filter and the camera
+    stage on or off whatever the defaults are."""
+    from cpf_jax.cli import build_parser, model_options
+    from cpf_jax.colour import ColourConfig, CorrelationConfig
+    from cpf_jax.colour.camera import DOWNSCALE
+
+    def config(*argv):
+        config_kw, colour_kw = model_options(build_parser().parse_args(["x", *argv]))
+        return ColourConfig(**config_kw, **colour_kw)
+
+    on = config("--correlation", "--follow-camera")
+    assert on.correlation == CorrelationConfig() and on.camera_motion == DOWNSCALE
+    off = config("--no-correlation", "--no-follow-camera")
+    assert off.correlation is None and off.camera_motion is None
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [
@@ -205,6 +222,8 @@ def test_histogram_only_model_from_the_command_line():
         (["{folder}", "--layout", "off", "--layout-feature", "gradient"], "not --layout off"),
         (["{folder}", "--layout", "off", "--layout-mirror"], "not --layout off"),
         (["{folder}", "--model", "rgbd", "--no-template-update"], "--model rgb"),
+        (["{folder}", "--model", "grid", "--correlation"], "--model rgb"),
+        (["{folder}", "--model", "grid-occlusion", "--follow-camera"], "--model rgb"),
         (["{folder}", "--model", "rgbd", "--contrast", "mixture"], "--model rgb"),
         (["{folder}", "--model", "rgbd", "--unseen", "neutral"], "--model rgb"),
         (["{folder}", "--contrast", "mixture", "--unseen", "neutral"], "linear contrast"),

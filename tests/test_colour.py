@@ -169,7 +169,7 @@ def test_step_state_and_info_are_finite_and_shaped(seq):
     assert state.cloud.previous.shape == (128, 8)
     assert 1.0 <= float(info.ess) <= 128.0
     for leaf in jax.tree_util.tree_leaves((state, info)):
-        assert np.isfinite(np.asarray(leaf, np.float32)).all()
+        assert np.isfinite(np.asarray(leaf)).all()
 
 
 def test_reports_the_weights_before_resampling_when_asked(seq):

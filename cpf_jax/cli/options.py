@@ -290,6 +290,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="--model rgb: slowly adapt the reference histograms (default on)",
     )
     p.add_argument(
+        "--correlation",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="--model rgb: add a correlation filter learnt online on the target against its "
+        "surround to the likelihood (default off)",
+    )
+    p.add_argument(
+        "--follow-camera",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="--model rgb: move the particles with the whole image's shift between frames "
+        "(a panning or shaking camera; default off)",
+    )
+    p.add_argument(
         "--contrast",
         choices=("linear", "mixture", "off"),
         default=None,
@@ -384,6 +398,14 @@ def model_options(args: argparse.Namespace) -> tuple[dict, dict]:
         colour_kw["layout_mirror"] = True
     if args.template_update is not None:
         colour_kw["template_update"] = args.template_update
+    if args.correlation is not None:
+        from cpf_jax.colour import CorrelationConfig
+
+        colour_kw["correlation"] = CorrelationConfig() if args.correlation else None
+    if args.follow_camera is not None:
+        from cpf_jax.colour.camera import DOWNSCALE
+
+        colour_kw["camera_motion"] = DOWNSCALE if args.follow_camera else None
     layout_opts = args.layout_feature or args.layout_mirror or args.layout_weight is not None
     if layout_opts and "layout" in colour_kw and colour_kw["layout"] is None:
         raise UsageError(
@@ -393,7 +415,8 @@ def model_options(args: argparse.Namespace) -> tuple[dict, dict]:
         raise UsageError(f"--layout-weight must be >= 0, got {args.layout_weight}")
     if (colour_kw or args.layout_weight is not None) and args.model != "rgb":
         raise UsageError(
-            f"--contrast, --unseen, --template-update and --layout* apply to --model rgb, "
+            f"--contrast, --unseen, --template-update, --correlation, --follow-camera and "
+            f"--layout* apply to --model rgb, "
             f"not {args.model!r}"
         )
     if args.no_body_term and args.model == "rgb":

@@ -37,6 +37,7 @@ from cpf_jax.colour.config import (
     bin_index,
     n_bins_of,
 )
+from cpf_jax.colour.correlation import CorrelationConfig, CorrelationParams
 from cpf_jax.colour.filter import ColourInfo, ColourState, build_colour_filter
 from cpf_jax.colour.params import (
     COLOUR,
@@ -63,6 +64,8 @@ __all__ = [
     "ColourParams",
     "ColourState",
     "ContrastParams",
+    "CorrelationConfig",
+    "CorrelationParams",
     "EstimateParams",
     "HistogramParams",
     "LayoutParams",

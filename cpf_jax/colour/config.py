@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from cpf_jax.colour.correlation import CorrelationConfig
 from cpf_jax.dynamics import DEFAULT_TAU, MODELS, RNGS
 from cpf_jax.kernels import resample as rs
 from cpf_jax.kernels.color import hsv_bin_index
@@ -109,6 +110,14 @@ class ColourConfig:
     # Score a box by the better of the layout template and its mirror image: a person who
     # turns round is the mirror image of his first side view.
     layout_mirror: bool = False
+    # Discriminative term: a correlation filter learnt online on the target against its
+    # surround, one dense response map per frame that every particle reads (None: off).
+    correlation: CorrelationConfig | None = None
+    # Camera motion: the image's shift since the last frame (phase correlation of grey
+    # frames downscaled by this factor) moves the cloud before the motion model (None: off).
+    camera_motion: int | None = None
+    # Below this phase-correlation peak no single shift explains the frames: none is applied.
+    camera_min_peak: float = 0.12
     rng: str = "hash"  # generator of the motion noise (cpf_jax.dynamics.RNGS)
     # Boxes per sequential block of the histogram gathers (None: all at once); the
     # default suits a CPU's 2 MB L2 cache, a GPU wants None or a large value.
@@ -139,6 +148,10 @@ class ColourConfig:
                 f"chunk must be None or >= 1, got {self.chunk}",
             ),
             (self.rng in RNGS, f"rng must be one of {RNGS}, got {self.rng!r}"),
+            (
+                self.camera_motion is None or self.camera_motion >= 1,
+                f"camera_motion must be None or a downscale factor >= 1, got {self.camera_motion}",
+            ),
             (
                 0.0 <= self.collapse_ratio < 1.0,
                 f"collapse_ratio must be in [0, 1), got {self.collapse_ratio}",

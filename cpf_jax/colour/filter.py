@@ -2,19 +2,22 @@
 
 One ``step`` is a short list of named stages::
 
+    follow camera     the image's shift moves the cloud and the estimate  (camera.py)
     propose           motion model, lost-target re-draws, bounds      (proposal.py)
     observe           the frame's bins and its summed-area planes      (observe)
-    score             histogram + contrast log-likelihoods, then the layout and aspect
-                      log-priors; reweight, estimate and the estimate's own stripe
+    score             histogram, contrast and correlation log-likelihoods, then the
+                      layout and aspect log-priors; reweight, estimate and the estimate's own stripe
                       histograms, all from one windowed integral histogram (weigh)
     judge             lost flag: best distance, weights, collapse
-    learn             histogram template, layout template, guide      (templates.py)
+    learn             histogram template, layout template, guide      (templates.py),
+                      correlation filter                               (correlation.py)
     resample          when ESS < ess_threshold * N (SIR every frame by default)
 
 The log-likelihood of a particle's box ``b`` is::
 
     -d(b)^2 / (2 sigma^2)                     mean over the stripes (thesis eqs. 3.7-3.8)
     + contrast.weight * contrast_score(b)     centre-surround colour contrast
+    + correlation.weight * response(b)        correlation filter at the box's centre
     + layout.weight * ncc(b)                  layout of cell luminances
     + log-normal prior on width / height
 
@@ -40,7 +43,14 @@ from cpf_jax.colour.appearance import (
     stripe_distances,
     stripe_rects,
 )
+from cpf_jax.colour.camera import CameraTrack, camera_init, camera_shift, shift_state
 from cpf_jax.colour.config import ColourConfig, bin_index
+from cpf_jax.colour.correlation import (
+    CorrelationModel,
+    correlation_init,
+    correlation_scores,
+    correlation_update,
+)
 from cpf_jax.colour.params import ColourParams
 from cpf_jax.colour.proposal import clamp, propose
 from cpf_jax.colour.templates import (
@@ -97,6 +107,8 @@ class ColourState(NamedTuple):
     histogram: HistogramTemplate
     contrast: ContrastModel
     layout: LayoutTemplate
+    correlation: CorrelationModel
+    camera: CameraTrack
     guide: Guide
     estimate: Array  # [4] xywh of the last frame
     lost: Array  # bool
@@ -179,6 +191,7 @@ def _weigh(
     log_weights: Array,
     particles: Array,
     contrast: Array | None,
+    correlation: Array | None,
     log_prior: Array | float,
     d2: Array,
     count,
@@ -188,6 +201,8 @@ def _weigh(
     log_lik = histogram_log_likelihood(d2, params.histogram.sigma)
     if contrast is not None:
         log_lik = log_lik + params.contrast.weight * contrast
+    if correlation is not None:
+        log_lik = log_lik + params.correlation.weight * correlation
     lw, invalid, ess, log_evidence = rs.reweight(log_weights, log_lik + log_prior)
     est = estimate_state(config, particles, lw, params.estimate.robust_radius)
     est_xywh = jnp.stack(box_columns(est), axis=-1)
@@ -239,6 +254,8 @@ def colour_init(
         histogram=histogram_template_init(config, frame, box),
         contrast=contrast,
         layout=layout_template_init(config, table, box),
+        correlation=correlation_init(config.correlation, frame, box),
+        camera=camera_init(config.camera_motion, frame.colour),
         guide=guide_init(),
         estimate=box,
         lost=~box_ok,
@@ -253,12 +270,21 @@ def colour_step(
     check_frame(frame)
     height, width = frame.colour.shape[:2]
     k_prop, k_rec, k_res = jax.random.split(key, 3)
+    camera = state.camera
+    if config.camera_motion is not None:
+        camera = camera_shift(config.camera_motion, camera, frame.colour, config.camera_min_peak)
+        state = shift_state(state, camera.shift)
     particles, origin = propose(config, params.motion, (k_prop, k_rec), state, width, height)
     obs = observe(config, state, frame)
     boxes = box_columns(particles)
     rects = stripe_rects(boxes, config.parts)
     area = state.estimate[2] * state.estimate[3]
     contrast = None if config.contrast is None else contrast_scores(config, obs.table, boxes, area)
+    correlation = None
+    if config.correlation is not None:
+        correlation = correlation_scores(
+            config.correlation, state.correlation, frame, state.estimate, particles[:, :2]
+        )
     log_prior = 0.0
     layout_table = _layout_table(config, obs)
     if config.layout is not None:
@@ -268,7 +294,7 @@ def colour_step(
         log_prior = log_prior + aspect_log_prior(particles, params.aspect)
     sqrt_q = jnp.sqrt(state.histogram.reference)  # [K, B]
     weigh = functools.partial(
-        _weigh, config, params, state.cloud.log_weights, particles, contrast, log_prior
+        _weigh, config, params, state.cloud.log_weights, particles, contrast, correlation, log_prior
     )
     d2, weighed = rect_reduce(
         obs.bins,
@@ -289,6 +315,9 @@ def colour_step(
         config, params.template, state.histogram, est_hist, est_d, lost
     )
     layout = layout_template_update(config, params.layout, state.layout, layout_table, est, lost)
+    learnt = correlation_update(
+        config.correlation, params.correlation, state.correlation, frame, est, lost
+    )
     (new_particles, previous), lw, resampled = rs.resample_if(
         k_res,
         weighed.log_weights,
@@ -301,6 +330,8 @@ def colour_step(
         histogram=histogram,
         contrast=state.contrast,
         layout=layout,
+        correlation=learnt,
+        camera=camera,
         guide=guide_update(config, state.guide, state.estimate, est, lost, state.lost),
         estimate=est,
         lost=lost,

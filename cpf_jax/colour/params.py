@@ -7,6 +7,7 @@ from typing import NamedTuple
 
 from jax import Array
 
+from cpf_jax.colour.correlation import CorrelationParams
 from cpf_jax.dynamics import MOTION, MotionParams
 from cpf_jax.likelihood import ASPECT, AspectParams
 from cpf_jax.params import P, props, values
@@ -17,6 +18,7 @@ __all__ = [
     "LayoutParams",
     "TemplateParams",
     "EstimateParams",
+    "CorrelationParams",
     "ColourParams",
     "COLOUR",
     "COLOUR_PROPS",
@@ -69,6 +71,7 @@ class ColourParams(NamedTuple):
     aspect: AspectParams
     template: TemplateParams
     estimate: EstimateParams
+    correlation: CorrelationParams
 
 
 #: The colour layer's defaults with their constraints. The thesis's ``sigma = 1`` leaves
@@ -86,6 +89,7 @@ COLOUR = ColourParams(
     aspect=ASPECT,
     template=TemplateParams(rate=P(0.05, "sigmoid"), max_distance=P(0.3, "sigmoid")),
     estimate=EstimateParams(robust_radius=P(0.25, "softplus")),
+    correlation=CorrelationParams(weight=P(4.0, "softplus"), rate=P(0.02, "sigmoid")),
 )
 
 #: How each colour parameter is tuned (``cpf_jax.tuning``).
