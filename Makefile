@@ -3,8 +3,9 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+CONTRIB := .venv-contrib
 
-.PHONY: demo test lint bench experiments figures clean
+.PHONY: demo test lint bench experiments figures unseen contrib-env clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -32,7 +33,7 @@ bench: $(STAMP)
 
 # Every table and figure in experiments/results (about 3 hours on a 2-core CPU; the parts
 # on ../shared/data skip with a message when it is absent). Each script also runs alone.
-experiments: $(STAMP)
+experiments: $(STAMP) $(CONTRIB)/.installed
 	$(BIN)/python experiments/colour_tables.py
 	$(BIN)/python experiments/crossing_terms.py --train layout+update+mirror
 	$(BIN)/python experiments/occlusion_tables.py
@@ -41,6 +42,19 @@ experiments: $(STAMP)
 	$(BIN)/python experiments/cascade_points.py
 	$(BIN)/python experiments/tune_colour.py
 	$(BIN)/python experiments/tune_rgbd.py
+	$(BIN)/python experiments/unseen.py
+
+# OpenCV's CSRT and KCF for experiments/unseen.py: opencv-contrib cannot share .venv with
+# opencv-python-headless, so it gets an environment of its own.
+$(CONTRIB)/.installed:
+	$(PYTHON) -m venv $(CONTRIB)
+	$(CONTRIB)/bin/python -m pip install --quiet opencv-contrib-python-headless numpy
+	touch $(CONTRIB)/.installed
+
+contrib-env: $(CONTRIB)/.installed
+
+unseen: $(STAMP) $(CONTRIB)/.installed
+	$(BIN)/python experiments/unseen.py
 
 # Redraw the figures kept as data in experiments/results/*.json (no re-run).
 figures: $(STAMP)
@@ -51,4 +65,4 @@ figures: $(STAMP)
 	$(BIN)/python experiments/tune_rgbd.py --figure-only
 
 clean:
-	rm -rf $(VENV) build *.egg-info demo.rrd demo_boxes.csv
+	rm -rf $(VENV) $(CONTRIB) build *.egg-info demo.rrd demo_boxes.csv

@@ -168,7 +168,10 @@ class ScenarioSpec:
     goes off half-way) with ``illumination_strength``, ``distance_m``, ``backdrop``
     (``"low"``: behind the walking path only furniture up to ``backdrop_height_m`` and no
     posters or wall shelves, so the upper body passes in front of the wall; ``"full"``:
-    clutter anywhere, as in ``distractor_pass``).
+    clutter anywhere, as in ``distractor_pass``), ``poles`` (thin clutter: posts 5-12 cm
+    thick, about half of them carrying a sign, standing anywhere in view, also between the
+    camera and the walk), ``focal_scale`` (the Kinect v2 focal length times this: below 1 a
+    wider view in which a far walker is small, above 1 a zoomed one).
     """
 
     path: str = "pace"
@@ -200,6 +203,8 @@ class ScenarioSpec:
     backdrop_height_m: float = 0.9
     occluders: tuple[Occluder, ...] = ()
     shirt_change: tuple[int, RGB] | None = None
+    poles: int = 0
+    focal_scale: float = 1.0
 
 
 SCENARIOS: dict[str, ScenarioSpec] = {
@@ -557,7 +562,19 @@ def _camera(height_m: float, pitch_deg: float) -> _Camera:
 # ---------------------------------------------------------------------------------------------
 # Paths.
 
-_TAN_HALF_FOV = min(KINECT_V2_DEPTH.cx, WIDTH - 1 - KINECT_V2_DEPTH.cx) / KINECT_V2_DEPTH.fx
+
+def _intrinsics(spec: ScenarioSpec) -> Intrinsics:
+    """The Kinect v2 depth camera's intrinsics with the focal length times ``focal_scale``."""
+    k, f = KINECT_V2_DEPTH, float(spec.focal_scale)
+    if f == 1.0:
+        return k
+    return Intrinsics(k.fx * f, k.fy * f, k.cx, k.cy)
+
+
+def _tan_half_fov(spec: ScenarioSpec) -> float:
+    """Tangent of the narrower half of the horizontal field of view."""
+    k = _intrinsics(spec)
+    return min(k.cx, WIDTH - 1 - k.cx) / k.fx
 
 
 class _PathPlan(NamedTuple):
@@ -574,7 +591,7 @@ def _pace_path(spec: ScenarioSpec, rng, duration_s: float, mirror: float) -> _Pa
     r = spec.lane_gap_m / 2
     d = spec.distance_m + rng.uniform(-0.1, 0.1)
     zf, zn = d + r, d - r
-    span = max(zn * _TAN_HALF_FOV - 0.6, 0.4)
+    span = max(zn * _tan_half_fov(spec) - 0.6, 0.4)
     loop = [(-span, zf), (span, zf), (span, zn), (-span, zn)]
     need = spec.speed_mps * duration_s + 4 * span
     n_loops = int(np.ceil(need / (4 * span + 2 * np.pi * r))) + 1
@@ -598,7 +615,7 @@ def _straight_path(spec: ScenarioSpec, rng, duration_s: float, mirror: float) ->
 def _turn_path(spec: ScenarioSpec, rng, duration_s: float, mirror: float) -> _PathPlan:
     """Across the view at ``far_m - 0.4``, then a 90 degree turn towards the camera."""
     z_across = spec.far_m - 0.4
-    xs = -(z_across * _TAN_HALF_FOV - 0.8)
+    xs = -(z_across * _tan_half_fov(spec) - 0.8)
     xc = rng.uniform(0.1, 0.5)
     wps = np.array([(xs, z_across), (xc, z_across), (xc, spec.near_m + 0.2)])
     wps = wps * np.array([mirror, 1.0])
@@ -795,7 +812,8 @@ def _placement_allowed(
         return False  # on the walking area
     corners_a = [xa / za, xb / za, xa / zb, xb / zb]
     a_lo, a_hi = min(corners_a), max(corners_a)
-    if a_hi < -_TAN_HALF_FOV or a_lo > _TAN_HALF_FOV:
+    tan_fov = _tan_half_fov(spec)
+    if a_hi < -tan_fov or a_lo > tan_fov:
         return False  # out of view: pointless
     if za < keep.z1 + 0.1 and a_hi > keep.amin and a_lo < keep.amax:
         return False  # would hide the person
@@ -947,7 +965,35 @@ def _scene(spec: ScenarioSpec, cam: _Camera, rng: np.random.Generator, keep: _Ke
     _furniture(b, spec, rng, keep, furniture, books)
     if spec.distractor:
         _distractor_panel(b, spec, rng, keep)
+    _poles(b, spec, rng, keep, furniture)
     return _Scene(b.prims, b.materials, floor_index)
+
+
+_POLE_COLOURS = ((70, 70, 72), (150, 150, 155), (40, 40, 44), (185, 170, 60))
+
+
+def _poles(b: _SceneBuilder, spec: ScenarioSpec, rng, keep: _KeepOut, furniture: list) -> None:
+    """``spec.poles`` thin posts in view, off the walking area but free to stand between it
+    and the camera; a sign on about half of them, coloured like the clutter."""
+    D, W2 = spec.room_depth_m, spec.room_half_width_m
+    tan_fov = _tan_half_fov(spec)
+    for _ in range(spec.poles):
+        for _attempt in range(60):
+            t = rng.uniform(0.05, 0.12)
+            cz = rng.uniform(max(1.5, 0.3 * D), D - 0.3)
+            cx = rng.uniform(-1.0, 1.0) * min(cz * tan_fov, W2 - 0.2)
+            if not (keep.x0 - t < cx < keep.x1 + t and keep.z0 - t < cz < keep.z1 + t):
+                break
+        else:
+            continue
+        rgb = _POLE_COLOURS[rng.integers(len(_POLE_COLOURS))]
+        height = rng.uniform(2.0, _CEILING_M - 0.05)
+        b.box((cx, height / 2, cz), (t, height, t), b.material(_Material(rgb, _ir(rgb))))
+        if rng.uniform() < 0.5:
+            w, h = rng.uniform(0.3, 0.7), rng.uniform(0.25, 0.6)
+            sign, _ = _clutter_colour(rng, spec, furniture)
+            m = b.material(_Material(tuple(sign), _ir(sign), "plain", 0.004, 0.05))
+            b.box((cx, height - h / 2 - 0.05, cz - t / 2 - 0.01), (w, h, 0.02), m)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1303,7 +1349,7 @@ class _Stage(NamedTuple):
 def _stage(
     spec: ScenarioSpec, cam: _Camera, scene: _Scene, tex: _Tex, n_frames: int, fps: float
 ) -> _Stage:
-    intr = KINECT_V2_DEPTH
+    intr = _intrinsics(spec)
     rays = _rays(intr)
     light = _light(cam)
     bg = _render_background(spec, scene, tex, rays, light, intr)

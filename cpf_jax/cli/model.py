@@ -39,7 +39,7 @@ def logged(args: argparse.Namespace) -> bool:
     return bool(args.rrd or args.spawn or args.connect)
 
 
-def _box_config(args: argparse.Namespace, options: tuple[dict, dict], box, frame_hw):
+def box_config(args: argparse.Namespace, options: tuple[dict, dict], box, frame_hw):
     """Layer 1's config and parameters: the colour layer for ``--model rgb``, else the
     RGB-D filter's variant, with a histogram window sized for the start box."""
     from cpf_jax.cascade import default_box_params
@@ -67,7 +67,7 @@ def build_model(args: argparse.Namespace, source, inputs: Inputs, options) -> Mo
     from cpf_jax.cascade import build_box_filter
 
     frame_hw = (source.size[1], source.size[0])
-    config, params = _box_config(args, options, inputs.box, frame_hw)
+    config, params = box_config(args, options, inputs.box, frame_hw)
     background = None if args.model == "rgb" else inputs.background  # the colour layer has none
     if args.points is None:
         context = Context(background=background)
@@ -75,7 +75,7 @@ def build_model(args: argparse.Namespace, source, inputs: Inputs, options) -> Mo
     return _cascade(args, source, inputs, config, params, background)
 
 
-def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -> Model:
+def _cascade(args, source, inputs: Inputs, layer1_config, box_params, background) -> Model:
     """The cascade of ``--points``: layer 2 on the box of layer 1, its points from
     ``joints``, ``auto`` or ``x,y;x,y;...``."""
     import jax.numpy as jnp
@@ -97,7 +97,7 @@ def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -
     )
     if foreground:
         points_config = points_config.with_foreground()
-    config = CascadeConfig(box=box_config, points=points_config, foreground=foreground)
+    config = CascadeConfig(box=layer1_config, points=points_config, foreground=foreground)
     if args.points == "auto":
         points, names = _auto_points(config, inputs, background)
     else:
@@ -111,7 +111,7 @@ def _cascade(args, source, inputs: Inputs, box_config, box_params, background) -
         estimate = params.points.estimate._replace(joint_depth_offset=offset)
         params = params._replace(points=params.points._replace(estimate=estimate))
     context = Context(background=background, points=jnp.asarray(points, jnp.float32))
-    n = box_config.n_particles
+    n = layer1_config.n_particles
     return Model(config, params, build_cascade(config), context, n, tuple(names))
 
 
