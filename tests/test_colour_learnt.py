@@ -101,15 +101,51 @@ def test_a_zero_weight_term_leaves_the_weights_and_a_zero_rate_the_filter(walk):
 def test_camera_shift_finds_a_pan_and_ignores_a_still_camera(walk):
     colour = walk.colour[0]
     a, b = colour[8:408, 12:492], colour[0:400, 0:480]  # content moved by (+12, +8)
+    box = walk.boxes[0]
     track = camera_init(4, a)
-    moved = jax.jit(lambda t, c: camera_shift(4, t, c, 0.05))(track, b)
+    moved = jax.jit(lambda t, c, e: camera_shift(4, t, c, e, 0.12))(track, b, box)
     np.testing.assert_allclose(moved.shift, [12.0, 8.0], atol=1.5)
-    still = camera_shift(4, camera_init(4, walk.colour[0]), walk.colour[1], 0.05)
+    still = camera_shift(4, camera_init(4, walk.colour[0]), walk.colour[1], box, 0.12)
     assert np.abs(np.asarray(still.shift)).max() <= 1.0
     # Frames no shift explains (noise against noise) move nothing.
     rng = np.random.default_rng(0)
     n1, n2 = (rng.integers(0, 255, (200, 240, 3), dtype=np.uint8) for _ in range(2))
-    assert np.all(np.asarray(camera_shift(4, camera_init(4, n1), n2, 0.12).shift) == 0)
+    still_box = np.array([100.0, 50.0, 30.0, 60.0], np.float32)
+    assert np.all(np.asarray(camera_shift(4, camera_init(4, n1), n2, still_box, 0.12).shift) == 0)
+
+
+def test_the_target_does_not_pass_its_own_motion_off_as_the_camera_s():
+    """A large box moving 8 px a frame over a background that changes every frame: the
+    only consistent motion is the target's, which the blanked box leaves out."""
+    rng = np.random.default_rng(3)
+    frames = []
+    for t in range(2):
+        img = rng.integers(60, 200, (240, 320, 3), dtype=np.uint8)
+        img[40:200, 100 + 8 * t : 180 + 8 * t] = np.array([200, 40, 40], np.uint8)
+        img[40:200:8, 100 + 8 * t : 180 + 8 * t] = 30  # stripes: a structure that moves
+        frames.append(img)
+    box = np.array([100.0, 40.0, 80.0, 160.0], np.float32)
+    blind = camera_shift(4, camera_init(4, frames[0]), frames[1], np.zeros(4, np.float32), 0.12)
+    assert abs(float(blind.shift[0]) - 8.0) <= 2.0  # without the blank: the target's motion
+    seen = camera_shift(4, camera_init(4, frames[0]), frames[1], box, 0.12)
+    assert np.all(np.asarray(seen.shift) == 0)
+
+
+def test_a_small_frame_s_noise_is_not_taken_for_the_camera_s_motion():
+    """160 x 120 frames (a 40 x 30 grid) of fresh noise each frame: the largest of the
+    surface's noise values clears the fixed peak but not the noise floor, so nothing moves;
+    a real shift of the same size of frame still does."""
+    rng = np.random.default_rng(1)
+    noise = [rng.integers(90, 110, (120, 160, 3), dtype=np.uint8) for _ in range(30)]
+    box = np.array([60.0, 35.0, 20.0, 50.0], np.float32)
+    shift = jax.jit(lambda t, c: camera_shift(4, t, c, box, 0.12).shift)
+    moved = [
+        np.asarray(shift(camera_init(4, a), b)) for a, b in zip(noise[:-1], noise[1:], strict=True)
+    ]
+    assert np.all(np.stack(moved) == 0)
+    scene = rng.integers(0, 255, (15, 20, 3), dtype=np.uint8).repeat(8, 0).repeat(8, 1)
+    a, b = scene[8:, 12:][:112, :148], scene[:112, :148]  # content moved by (+12, +8)
+    np.testing.assert_allclose(shift(camera_init(4, a), b), [12.0, 8.0], atol=1.5)
 
 
 def test_shift_state_moves_positions_and_keeps_velocities():

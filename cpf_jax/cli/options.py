@@ -301,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="--model rgb: move the particles with the whole image's shift between frames "
-        "(a panning or shaking camera; default off)",
+        "(a panning or shaking camera; default on)",
     )
     p.add_argument(
         "--contrast",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from cpf_jax.colour.camera import DOWNSCALE as CAMERA_DOWNSCALE
 from cpf_jax.colour.correlation import CorrelationConfig
 from cpf_jax.dynamics import DEFAULT_TAU, MODELS, RNGS
 from cpf_jax.kernels import resample as rs
@@ -115,7 +116,7 @@ class ColourConfig:
     correlation: CorrelationConfig | None = None
     # Camera motion: the image's shift since the last frame (phase correlation of grey
     # frames downscaled by this factor) moves the cloud before the motion model (None: off).
-    camera_motion: int | None = None
+    camera_motion: int | None = CAMERA_DOWNSCALE
     # Below this phase-correlation peak no single shift explains the frames: none is applied.
     camera_min_peak: float = 0.12
     rng: str = "hash"  # generator of the motion noise (cpf_jax.dynamics.RNGS)

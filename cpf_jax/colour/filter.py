@@ -272,7 +272,9 @@ def colour_step(
     k_prop, k_rec, k_res = jax.random.split(key, 3)
     camera = state.camera
     if config.camera_motion is not None:
-        camera = camera_shift(config.camera_motion, camera, frame.colour, config.camera_min_peak)
+        camera = camera_shift(
+            config.camera_motion, camera, frame.colour, state.estimate, config.camera_min_peak
+        )
         state = shift_state(state, camera.shift)
     particles, origin = propose(config, params.motion, (k_prop, k_rec), state, width, height)
     obs = observe(config, state, frame)
