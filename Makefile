@@ -42,6 +42,7 @@ experiments: $(STAMP) $(CONTRIB)/.installed
 	$(BIN)/python experiments/cascade_points.py
 	$(BIN)/python experiments/tune_colour.py
 	$(BIN)/python experiments/tune_rgbd.py
+	$(BIN)/python experiments/rgbd_scene.py
 	$(BIN)/python experiments/unseen.py
 
 # OpenCV's CSRT and KCF for experiments/unseen.py: opencv-contrib cannot share .venv with

@@ -32,6 +32,11 @@ background, in colour and in depth. Here:
   end). The shares are computed on every ``stride``-th pixel of every ``stride``-th
   row, so that 150 full-HD candidates need about 1/16 of the memory of their
   full-resolution median.
+* A pixel the model has never seen (colour ``< 0``, :data:`UNSEEN`) is unknown:
+  :func:`scene_outside` makes a model of one frame with the target's pixels unknown,
+  :func:`behind_plane` gives the unknown pixels a surface just behind a depth (the target's:
+  whatever is nearer is foreground, the wall behind it is not), and
+  :func:`learn_unseen` gives them the frame's values once they show outside the box.
 * :func:`update_background` is the optional running update: a blend
   ``(1 - rate) bg + rate frame`` on background pixels only (foreground never
   leaks into the model), depth only where the frame measured it; a pixel with
@@ -56,7 +61,15 @@ __all__ = [
     "masked_quantile",
     "quiet_frames",
     "update_background",
+    "UNSEEN",
+    "box_mask",
+    "scene_outside",
+    "behind_plane",
+    "learn_unseen",
 ]
+
+#: Colour of a background pixel never seen: every frame's colour differs from it.
+UNSEEN = -1000.0
 
 
 class Background(NamedTuple):
@@ -208,18 +221,59 @@ def update_background(
     foreground: Array,
     rate: float | Array = 0.05,
 ) -> Background:
-    """Running update: blend the frame into the model on background pixels only.
+    """Running update: blend the frame into the model on background pixels only (an
+    unseen pixel takes the frame's colour outright).
 
     ``colour [H, W, 3] uint8``, ``depth [H, W] uint16``, ``foreground [H, W] bool``;
     ``rate`` in ``[0, 1]`` (0: frozen model).
     """
     bg_pix = ~jnp.asarray(foreground, bool)
     col = jnp.asarray(colour).astype(jnp.float32)
-    new_col = jnp.where(
-        bg_pix[..., None], (1.0 - rate) * background.colour + rate * col, background.colour
-    )
+    seen = background.colour >= 0
+    blend = jnp.where(seen, (1.0 - rate) * background.colour + rate * col, col)
+    new_col = jnp.where(bg_pix[..., None], blend, background.colour)
     z = jnp.asarray(depth).astype(jnp.float32)
     zb = background.depth
     blended = jnp.where(zb > 0, (1.0 - rate) * zb + rate * z, z)
     new_dep = jnp.where(bg_pix & (z > 0), blended, zb)
     return Background(new_col, new_dep)
+
+
+def box_mask(shape: tuple[int, int], box: Array, grow: float = 0.0) -> Array:
+    """``[H, W] bool``: the pixels whose centres lie in ``box`` (xywh) grown by ``grow`` of
+    its size on every side."""
+    box = jnp.asarray(box, jnp.float32)
+    lo = box[:2] - grow * box[2:4]
+    hi = box[:2] + (1.0 + grow) * box[2:4]
+    ys = jnp.arange(shape[0], dtype=jnp.float32) + 0.5
+    xs = jnp.arange(shape[1], dtype=jnp.float32) + 0.5
+    in_y = (ys >= lo[1]) & (ys < hi[1])
+    in_x = (xs >= lo[0]) & (xs < hi[0])
+    return in_y[:, None] & in_x[None, :]
+
+
+def scene_outside(colour: Array, depth: Array, hidden: Array) -> Background:
+    """One frame (``[H, W, 3]`` uint8, ``[H, W]`` uint16) as a background model, with the
+    pixels where ``hidden [H, W] bool`` (the target and what it may hide) unseen."""
+    col = jnp.where(hidden[..., None], UNSEEN, jnp.asarray(colour).astype(jnp.float32))
+    dep = jnp.where(hidden, 0.0, jnp.asarray(depth).astype(jnp.float32))
+    return Background(col, dep)
+
+
+def behind_plane(background: Background, z: Array) -> Background:
+    """``background`` with its unseen pixels given depth ``z`` (mm, a scalar; 0 leaves
+    them without depth, so that colour decides and every pixel there is foreground)."""
+    unseen = background.colour[..., 0] < 0
+    return background._replace(depth=jnp.where(unseen, z, background.depth))
+
+
+def learn_unseen(
+    background: Background, colour: Array, depth: Array, keep_out: Array
+) -> Background:
+    """``background`` with every unseen pixel outside ``keep_out [H, W] bool`` (the target
+    and what may be hiding behind it) set to the frame's colour and depth."""
+    unseen = background.colour[..., 0] < 0
+    learn = unseen & ~jnp.asarray(keep_out, bool)
+    col = jnp.where(learn[..., None], jnp.asarray(colour).astype(jnp.float32), background.colour)
+    dep = jnp.where(learn, jnp.asarray(depth).astype(jnp.float32), background.depth)
+    return Background(col, dep)

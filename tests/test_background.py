@@ -12,13 +12,18 @@ from checks import check_kernel
 from scipy import stats
 
 from cpf_jax.kernels.background import (
+    UNSEEN,
     Background,
+    behind_plane,
+    box_mask,
     foreground_mask,
     foreground_shares,
+    learn_unseen,
     masked_median,
     masked_quantile,
     median_background,
     quiet_frames,
+    scene_outside,
     update_background,
 )
 from cpf_jax.kernels.boxes import xywh_to_rect
@@ -239,6 +244,91 @@ def test_running_update_only_touches_background_pixels():
     np.testing.assert_allclose(d1[upd], 0.5 * d0[upd] + 0.5 * z[upd], rtol=1e-6)
     miss = ~fg & (z == 0)
     np.testing.assert_array_equal(d1[miss], d0[miss])
+
+
+def _box_mask_reference(shape, box, grow):
+    """Pixel centres ``(i + 0.5)`` inside the grown box, by loops."""
+    x, y, w, h = (float(v) for v in box)
+    out = np.zeros(shape, bool)
+    for i in range(shape[0]):
+        for j in range(shape[1]):
+            cx, cy = j + 0.5, i + 0.5
+            out[i, j] = (x - grow * w <= cx < x + (1 + grow) * w) and (
+                y - grow * h <= cy < y + (1 + grow) * h
+            )
+    return out
+
+
+def test_box_mask_holds_the_pixel_centres_of_the_grown_box():
+    boxes = [
+        np.array([5.3, 4.0, 9.4, 7.7], np.float32),
+        np.array([-3.0, 10.0, 8.0, 30.0], np.float32),
+    ]
+    for grow in (0.0, 0.25):
+        check_kernel(
+            lambda b, g=grow: box_mask((H, W), b, g),
+            lambda b, g=grow: _box_mask_reference((H, W), b, g),
+            (boxes[0],),
+            batch=[(b,) for b in boxes],
+        )
+
+
+def _scene_reference(colour, depth, hidden, z, keep_out, colour2, depth2):
+    """The unseen-pixel model by hand: hide, put a plane behind, learn outside keep_out."""
+    col = np.where(hidden[..., None], UNSEEN, colour.astype(np.float32))
+    dep = np.where(hidden, 0.0, depth.astype(np.float32))
+    plane = np.where(hidden, z, dep)
+    learn = hidden & ~keep_out
+    col2 = np.where(learn[..., None], colour2.astype(np.float32), col)
+    dep2 = np.where(learn, depth2.astype(np.float32), dep)
+    return plane, col2, dep2
+
+
+def _scene_kernel(colour, depth, hidden, z, keep_out, colour2, depth2):
+    bg = scene_outside(colour, depth, hidden)
+    learnt = learn_unseen(bg, colour2, depth2, keep_out)
+    return behind_plane(bg, z).depth, learnt.colour, learnt.depth
+
+
+def test_the_unseen_scene_is_hidden_put_behind_the_target_and_learnt_outside_it():
+    colour, depth = _stack(5)
+    items = []
+    for k in range(2):
+        hidden = np.zeros((H, W), bool)
+        hidden[4 + k : 15, 6 : 20 - k] = True
+        keep_out = np.zeros((H, W), bool)
+        keep_out[8:20, 10 + k : 28] = True
+        items.append(
+            (
+                colour[k],
+                depth[k],
+                hidden,
+                np.float32(2500 + k),
+                keep_out,
+                colour[k + 2],
+                depth[k + 2],
+            )
+        )
+    check_kernel(_scene_kernel, _scene_reference, items[0], batch=items, atol=0.0, rtol=0.0)
+    # The model's rules on one frame: only unseen pixels take the plane and the new frame.
+    c, d, hidden, z, keep_out, c2, d2 = items[0]
+    plane, col2, dep2 = (np.asarray(a) for a in _scene_kernel(*items[0]))
+    assert (plane[hidden] == z).all() and (plane[~hidden] == d[~hidden]).all()
+    assert (col2[hidden & keep_out] == UNSEEN).all()
+    assert (dep2[~hidden] == d[~hidden]).all() and (
+        dep2[hidden & ~keep_out] == d2[hidden & ~keep_out]
+    ).all()
+
+
+def test_an_unseen_pixel_takes_the_frame_s_colour_in_the_running_update():
+    colour, depth = _stack(7)
+    hidden = np.zeros((H, W), bool)
+    hidden[2:6, 3:9] = True
+    bg = scene_outside(colour[0], depth[0], hidden)
+    new = update_background(bg, colour[1], depth[1], np.zeros((H, W), bool), 0.1)
+    np.testing.assert_array_equal(
+        np.asarray(new.colour)[hidden], colour[1][hidden].astype(np.float32)
+    )
 
 
 # -- cells ------------------------------------------------------------------------------

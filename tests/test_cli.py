@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cpf_jax.cli import main, parse_box
+from cpf_jax.cli import main, open_inputs, parse_box
 from cpf_jax.io import read_results
 from cpf_jax.synthetic import make_sequence, to_folder
 
@@ -657,3 +657,29 @@ def test_rows_hold_copies_not_views_of_the_steps_arrays():
     np.testing.assert_array_equal(row.box, [0, 1, 2, 3])
     assert row.box.flags.owndata and row.box.base is None
     assert row.points2d.shape == (0, 2) and row.points3d.shape == (0, 3)
+
+
+def test_background_learn_reads_no_background_frames(tmp_path, capsys):
+    # --background learn: the RGB-D filter learns the scene from the tracked frames
+    # (RGBDConfig.learn_scene) and no frame is read for a background model.
+    from cpf_jax.cli import build_parser
+    from cpf_jax.io import open_source
+
+    to_folder(make_sequence("walk_towards", seed=0, n_frames=6), tmp_path)
+    for background, learnt in (("learn", True), ("auto", False)):
+        args = build_parser().parse_args(
+            [str(tmp_path), "--model", "rgbd", "--background", background]
+        )
+        inputs = open_inputs(args, open_source(args.path))
+        assert (inputs.background is None) == learnt, background
+    argv = [
+        str(tmp_path),
+        "--model",
+        "grid-occlusion",
+        "--background",
+        "learn",
+        "--particles",
+        "16",
+    ]
+    assert main([*argv, "--no-progress", "--out", str(tmp_path / "b.csv")]) == 0
+    assert "background: median" not in capsys.readouterr().err

@@ -14,7 +14,9 @@ models learn a background from ``--background`` frames of the recording: by defa
 foreground in front of the farthest surface each pixel shows in a fifth of them (a share
 at most twice the quietest's plus 1 % of the frame; at least 5, at most 25;
 :func:`cpf_jax.kernels.background.quiet_frames`), so that the empty frames of a
-recording whose people come and go make the model.
+recording whose people come and go make the model; ``--background learn`` reads no
+background frames, and the filter learns the scene from the tracked frames
+(``RGBDConfig.learn_scene``).
 
 ``--points`` adds layer 2 (``cpf_jax.cascade``): points on the body (``joints``:
 a synthetic scenario's head, hands and feet; ``auto``: head, hands and feet found

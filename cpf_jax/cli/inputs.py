@@ -51,8 +51,10 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     # Depth is read by the RGB-D models, the cascade and --init auto's person finder.
     uses_depth = args.model != "rgb" or args.points is not None or auto
     register = _registrar(calib, uses_depth=uses_depth)
-    # A background model: the RGB-D models' foreground, and --init auto's person finder.
-    need_bg = args.model != "rgb" or auto
+    # A background model: the RGB-D models' foreground (unless they learn the scene from
+    # the tracked frames, --background learn), and --init auto's person finder.
+    learn = args.background == "learn"
+    need_bg = (args.model != "rgb" and not learn) or auto
     note = None
     if live:
         start, box, bg_frames, frames = _open_live(args, source, register, need_bg, auto)
@@ -77,7 +79,7 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     if uses_depth:
         _check_alignment([first, *(bg_frames or [])[:4]], source.describe())
     frames = itertools.chain([(start, first)], frames)
-    return Inputs(start, box, frames, first, scene, calib, note, n_frames)
+    return Inputs(start, box, frames, first, None if learn else scene, calib, note, n_frames)
 
 
 def _check_depth(args: argparse.Namespace, source, start: int, first) -> None:
@@ -179,7 +181,9 @@ def _open_recording(args, source, register, need_bg: bool, auto: bool):
     start, box = _start_and_box(args, source, n_frames, auto)
     bg_frames, note = None, None
     if need_bg:
-        if args.background == "empty":
+        # With --background learn only --init auto's finder needs one: the quiet frames.
+        mode = "auto" if args.background == "learn" else args.background
+        if mode == "empty":
             empty = source.empty_background()
             if empty is None:
                 raise UsageError(
@@ -187,7 +191,7 @@ def _open_recording(args, source, register, need_bg: bool, auto: bool):
                     "(only synthetic scenarios do); give N or A:B"
                 )
             bg_frames = [empty]
-        elif args.background == "auto":
+        elif mode == "auto":
             bg_frames, note = quiet_background(read, parse_background("auto", n_frames))
         else:
             indices = parse_background(args.background, n_frames)
@@ -267,7 +271,8 @@ def _open_live(args: argparse.Namespace, source, register, need_bg: bool, auto: 
             f"{where}: a live source has no ground truth; give --init x,y,w,h or --init auto"
         )
     box = None if auto else parse_box(args.init)
-    bg = parse_live_background(args.background) if need_bg else (0, 0)
+    mode = "auto" if args.background == "learn" else args.background  # learn: the finder's
+    bg = parse_live_background(mode) if need_bg else (0, 0)
     start = bg[1] if args.start is None else args.start
     if start < bg[1]:
         raise UsageError(

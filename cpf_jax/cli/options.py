@@ -144,7 +144,7 @@ def parse_background(text: str, n_frames: int) -> list[int]:
         frames = None
     if not frames:
         raise UsageError(
-            f"--background expects auto, empty, N >= 1 or A:B with frames inside "
+            f"--background expects auto, empty, learn, N >= 1 or A:B with frames inside "
             f"0..{n_frames - 1}, got {text!r}"
         )
     return frames
@@ -260,7 +260,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="background frames for the RGB-D models: 'auto' (default: up to 25 frames with "
         "the least foreground among up to 150 evenly spaced ones; a live stream's first 25), "
         "N (evenly spaced over the recording; a live stream's first N), A:B (frames A..B-1, "
-        "0-based) or 'empty' (a synthetic scenario's empty room)",
+        "0-based), 'empty' (a synthetic scenario's empty room) or 'learn' (none: the scene "
+        "is learnt from the tracked frames, around and behind the target)",
     )
     p.add_argument(
         "--start",

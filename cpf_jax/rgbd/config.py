@@ -40,6 +40,14 @@ class RGBDConfig:
     aspect_prior: bool = True
     template_update: bool = True  # eq. 7-8 in the cells voted visible
     background_update: bool = False  # running update of the background on its own pixels
+    # Without a background model (``context.background`` None): learn one from the frames.
+    # The first frame is the scene but for the pixels within ``behind_mm`` of the target's
+    # depth in its box grown by ``scene_margin``; each of those is learnt once it shows
+    # outside the estimate grown as much, and until then is foreground when nearer than
+    # ``behind_mm`` behind the target's depth (False: every pixel is foreground).
+    learn_scene: bool = True
+    scene_margin: float = 0.1
+    behind_mm: float = 500.0
     flag_transition: str = "auto"
     max_full_cells: int = 6  # "auto": the full 2^C matrix up to this many cells
     report: str = "pixels"

@@ -38,7 +38,15 @@ from cpf_jax.filter import (
 )
 from cpf_jax.kernels import boxes as box_ops
 from cpf_jax.kernels import resample as rs
-from cpf_jax.kernels.background import Background, update_background
+from cpf_jax.kernels.background import (
+    Background,
+    behind_plane,
+    box_mask,
+    learn_unseen,
+    masked_quantile,
+    scene_outside,
+    update_background,
+)
 from cpf_jax.likelihood import aspect_log_prior
 from cpf_jax.rgbd.beta import beta_fill_shift, fill_adapted, initial_fill
 from cpf_jax.rgbd.cells import cell_terms
@@ -116,9 +124,9 @@ def rgbd_init(
     box: Array,
     context: Context | None = None,
 ) -> RGBDState:
-    """Templates from the initial box against ``context.background`` (None: every pixel is
-    foreground), ``n_particles`` copies of the box, the Beta means moved towards its
-    foreground fill (``beta.py``)."""
+    """Templates from the initial box against ``context.background`` (None: the scene
+    learnt from the frames, ``config.learn_scene``), ``n_particles`` copies of the box, the
+    Beta means moved towards its foreground fill (``beta.py``)."""
     check_frame(frame, needs_depth=True)
     box, _ = usable_box(box, frame)  # an unusable box under jit: the whole frame
     height, width = frame.colour.shape[:2]
@@ -126,6 +134,12 @@ def rgbd_init(
     bg = as_background(background, frame)
     obs = observe(config, params.foreground, frame, bg)
     _, med, _ = cell_statistics(config, obs, box)
+    if background is None and config.learn_scene:
+        # The box's depths against no background give the target's depth; the frame is
+        # the scene but for the pixels at that depth in and around the box.
+        bg = scene_outside(frame.colour, frame.depth, _near_target(config, frame, box, med))
+        obs = observe(config, params.foreground, frame, _behind_target(config, bg, med))
+        _, med, _ = cell_statistics(config, obs, box)
     particles = at_rest(box, config.n_particles)
     if config.init_spread > 0:
         jitter = jax.random.normal(key, (config.n_particles, 2)) * config.init_spread
@@ -134,7 +148,7 @@ def rgbd_init(
     c = config.n_cells
     fill_shift = (
         jnp.zeros((), jnp.float32)
-        if background is None
+        if background is None and not config.learn_scene
         else beta_fill_shift(params.beta, initial_fill(obs.foreground, box))
     )
     return RGBDState(
@@ -148,6 +162,36 @@ def rgbd_init(
         estimate=box,
         fill_shift=fill_shift,
     )
+
+
+def target_depth(medians: Array) -> Array:
+    """The target's depth (mm): the median of the known cell depths ``[C]`` (0: none)."""
+    return masked_quantile(medians, medians > 0, 0.5)
+
+
+def _behind_target(config: RGBDConfig, background: Background, medians: Array) -> Background:
+    """``background`` with its unseen pixels ``config.behind_mm`` behind the target's
+    depth (unchanged when the target's depth is unknown)."""
+    z = target_depth(medians)
+    return behind_plane(background, jnp.where(z > 0, z + config.behind_mm, 0.0))
+
+
+def _near_target(config: RGBDConfig, frame: Frame, box: Array, medians: Array) -> Array:
+    """``[H, W] bool``: the pixels of ``box`` grown by ``scene_margin`` within
+    ``behind_mm`` of the target's depth or without depth: the target may be there."""
+    depth = frame.depth.astype(jnp.float32)
+    z = target_depth(medians)
+    near = (jnp.abs(depth - z) <= config.behind_mm) | (depth <= 0) | (z <= 0)
+    return box_mask(depth.shape, box, config.scene_margin) & near
+
+
+def _learn_scene(
+    config: RGBDConfig, background: Background, frame: Frame, est: Array
+) -> Background:
+    """The unseen pixels that show outside the estimate grown by ``scene_margin``, learnt
+    from the frame."""
+    keep_out = box_mask(frame.depth.shape, est, config.scene_margin)
+    return learn_unseen(background, frame.colour, frame.depth, keep_out)
 
 
 def score_particles(
@@ -194,6 +238,8 @@ def _learn(
     colour = cell_colour_update(config, params.colour, state.colour, est_hist, ok)
     body = body_template_update(config, params.body, state.body, obs, report, vote, lost)
     background = state.background
+    if config.learn_scene:
+        background = _learn_scene(config, background, frame, est)
     if config.background_update:
         background = update_background(
             background,
@@ -213,7 +259,10 @@ def rgbd_step(
     k_prop, k_spread, k_flag, k_res, k_rec = jax.random.split(key, 5)
     k_det = jax.random.fold_in(key, 6)
     state = state._replace(depth=depth_template_predict(config, state.depth))
-    obs = observe(config, params.foreground, frame, state.background)
+    scene = state.background
+    if config.learn_scene:
+        scene = _behind_target(config, scene, state.depth.depth)
+    obs = observe(config, params.foreground, frame, scene)
     proposal = propose(config, params, (k_prop, k_spread, k_det, k_rec), state, obs, frame.depth)
     log_lik, post, terms = score_particles(config, params, k_flag, state, obs, proposal)
     lw, invalid, ess, log_evidence = rs.reweight(state.cloud.log_weights, log_lik)

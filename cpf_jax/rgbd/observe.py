@@ -61,6 +61,9 @@ def observe(
         depth_rel=params.depth_rel,
         colour_threshold=params.colour,
     )
+    if config.learn_scene:
+        # An unseen pixel without depth is nobody's: neither depth nor colour can tell.
+        fg = fg & ~((background.colour[..., 0] < 0) & (frame.depth == 0))
     off = n_bins_of(config.bins) if config.background_bin else -1
     cbins = jnp.where(fg, bin_index(frame.colour, config.bins), off)
     dbins = depth_bin_index(frame.depth, fg, config.depth_bins, *config.depth_range)
