@@ -33,6 +33,7 @@ class Row(NamedTuple):
     box_used: np.ndarray  # [4] the box layer 2 worked in (the box itself without layer 2)
     surface: np.ndarray | None = None  # [M, 3] mm layer 2's body points (logged runs)
     weighed: Any = None  # the box particles before resampling (logged runs), or None
+    hidden: np.ndarray | None = None  # [P] bool, layer 2 reports the point hidden
 
 
 class LogThread:
@@ -114,7 +115,9 @@ class Sinks:
                 from cpf_jax.cascade import body_surface
 
                 self.surface = jax.jit(body_surface, static_argnums=0)
-        columns = [f"{n}_{c}" for n in model.points for c in ("x", "y", "X_mm", "Y_mm", "Z_mm")]
+        columns = [
+            f"{n}_{c}" for n in model.points for c in ("x", "y", "X_mm", "Y_mm", "Z_mm", "hidden")
+        ]
         if args.out:
             self.writer = ResultsWriter(args.out, extra_columns=("ess", "lost", "ms", *columns))
 
@@ -129,6 +132,7 @@ class Sinks:
                 if np.all(np.isfinite(row.points3d[n])):
                     for c, v in zip(("X_mm", "Y_mm", "Z_mm"), row.points3d[n], strict=True):
                         extras[f"{name}_{c}"] = round(float(v), 1)
+                extras[f"{name}_hidden"] = int(row.hidden[n])
             self.writer.write(
                 i, row.box, ess=round(row.ess, 2), lost=int(row.lost), ms=round(row.ms, 3), **extras
             )
@@ -186,7 +190,8 @@ def _first_row(inputs: Inputs, model: Model, state: Any, ms: float) -> Row:
 
     p2 = np.array(state.points.estimate, np.float32)
     p3 = np.array(estimate_3d(model.config.points, model.params.points, state.points))
-    return Row(box, False, float(model.n_particles), ms, p2, p3, box)
+    hidden = np.array(state.points.hidden).mean(axis=1) > 0.5
+    return Row(box, False, float(model.n_particles), ms, p2, p3, box, hidden=hidden)
 
 
 #: The points of a run without layer 2: one shared pair of empty arrays, not two per frame.
@@ -201,15 +206,16 @@ def _step_row(model: Model, info: Any, ms: float) -> Row:
     box = np.array(info.box, np.float32)
     if model.points:
         p2, p3 = np.array(info.points.mean), np.array(info.points.mean3d)
+        hidden = np.array(info.points.hidden)
         used = np.array(info.box_used)
         surface = info.points.surface
         surface = None if surface is None else np.asarray(surface)
     else:
         (p2, p3), used = NO_POINTS, box
-        surface = None
+        surface = hidden = None
     weighed = info.weighed_cloud
     weighed = None if weighed is None else type(weighed)(*map(np.asarray, weighed))
-    return Row(box, bool(info.lost), float(info.ess), ms, p2, p3, used, surface, weighed)
+    return Row(box, bool(info.lost), float(info.ess), ms, p2, p3, used, surface, weighed, hidden)
 
 
 def _record(results: Results, i: int, row: Row) -> None:

@@ -74,6 +74,10 @@ class PointConfig:
     # Temporal depth consistency: a particle whose surface depth departs from the
     # predicted depth of its point loses weight (``params.depth_sigma``).
     depth_consistency: bool = True
+    # Each particle carries a visibility flag: a point that self-occlusion or another
+    # surface hides is reported hidden, with its predicted motion, instead of being put on
+    # the surface in front of it (``points.filter.hidden_term``).
+    visibility: bool = True
     ess_threshold: float = 1.0  # 1.0: resample every frame (SIR)
     resampler: str = "systematic"
     max_sweeps: int = 64  # geodesic relaxation sweeps (converges in 3-8)

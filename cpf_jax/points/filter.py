@@ -64,7 +64,9 @@ __all__ = [
     "geodesic_term",
     "depth_term",
     "point_weights",
+    "hidden_term",
     "point_recover",
+    "point_estimate",
     "point_resample",
     "point_step",
     "estimate_3d",
@@ -77,12 +79,19 @@ class PointMotionParams(NamedTuple):
     vel_noise: Array  # px/frame, std of the velocity noise n_v
     velocity_decay: Array  # in [0, 1]; 1 = constant velocity, 0 = random walk
     recovery_spread: Array  # px, std of the cloud re-drawn by the recovery
+    hidden_pos_noise: Array  # px, std of a hidden particle's position noise
+    hidden_velocity_decay: Array  # in [0, 1], a hidden particle's velocity decay
+    p_hide: Array  # per frame, probability that a visible particle becomes hidden
+    p_show: Array  # per frame, probability that a hidden particle becomes visible
+    reappear_spread: Array  # px, std of the position noise of a particle that shows again
 
 
 class PointWeightParams(NamedTuple):
     spin_temperature: Array  # log-weight = C / temperature (C spans about 0-3)
     geo_sigma: Array  # mm, width of the geodesic-deviation likelihood
     depth_sigma: Array  # mm, width of the depth-consistency likelihood
+    hidden_log_weight: Array  # log-weight of a hidden particle with a surface in front
+    occlusion_margin: Array  # mm, how far in front of a point a surface must be to hide it
 
 
 class PointEstimateParams(NamedTuple):
@@ -103,11 +112,18 @@ POINTS = PointParams(
         vel_noise=P(1.0, "softplus"),
         velocity_decay=P(0.5, "sigmoid"),
         recovery_spread=P(2.0, "softplus"),
+        hidden_pos_noise=P(3.0, "softplus"),
+        hidden_velocity_decay=P(0.95, "sigmoid"),
+        p_hide=P(0.1, "sigmoid"),
+        p_show=P(0.1, "sigmoid"),
+        reappear_spread=P(6.0, "softplus"),
     ),
     weights=PointWeightParams(
         spin_temperature=P(0.1, "softplus"),
         geo_sigma=P(40.0, "softplus"),
         depth_sigma=P(40.0, "softplus"),
+        hidden_log_weight=P(-3.0),
+        occlusion_margin=P(80.0, "softplus"),
     ),
     estimate=PointEstimateParams(joint_depth_offset=P(0.0)),
 )
@@ -136,7 +152,8 @@ class PointState(NamedTuple):
     ref_geodesic: Array  # [P, R] mm, initial geodesic distances from the references
     box: Array  # [4] box of the last frame
     estimate: Array  # [P, 2] weighted-mean estimate of the last frame
-    depth: Array  # [P] mm, surface depth under the last estimate
+    depth: Array  # [P] mm, the point's depth: the surface under its last visible estimate
+    hidden: Array  # [P, N] bool, each particle's visibility flag (True: hidden)
 
 
 class PointInfo(NamedTuple):
@@ -152,6 +169,8 @@ class PointInfo(NamedTuple):
     mesh_resolution: Array  # [] mm
     sweeps: Array  # [] geodesic relaxation sweeps
     spin_complete: Array  # [P] fraction of spin supports that fit their patch
+    hidden: Array  # [P] bool, the point is reported hidden (hidden_share > 0.5)
+    hidden_share: Array  # [P] posterior probability that the point is hidden
     surface: Array | None = None  # [Hw * Ww, 3] mm body points (NaN off it), report_surface
 
 
@@ -222,6 +241,7 @@ def point_init(
         box=jnp.asarray(box, jnp.float32),
         estimate=start,
         depth=bm.depth[rc[:, 0], rc[:, 1]],
+        hidden=jnp.zeros((p, n), bool),
     )
 
 
@@ -234,13 +254,18 @@ def estimate_3d(config: PointConfig, params: PointParams, state: PointState) -> 
 
 def point_predict(
     config: PointConfig, params: PointParams, keys, state: PointState, box: Array
-) -> tuple[Array, Array, Array, Array]:
-    """``(xy, velocity, previous estimate, predicted depth)`` after following the box and
-    the constant-velocity model with decay."""
-    k_pos, k_vel = keys
+) -> tuple[Array, Array, Array, Array, Array]:
+    """``(xy, velocity, hidden, previous estimate, predicted depth)`` after following the
+    box, the visibility flags' Markov transition (visible -> hidden with ``p_hide``, hidden
+    -> visible with ``p_show``) and the constant-velocity model with decay. A hidden
+    particle keeps more of its velocity and spreads wider (the point moves on unseen); one
+    that shows again spreads by ``reappear_spread`` (the point comes out where the body
+    model and the likelihood say, not exactly where it was predicted)."""
+    k_pos, k_vel, k_vis = keys
     p = state.particles.shape[0]
     m = params.motion
     xy, vel = state.particles[..., :2], state.particles[..., 2:]
+    hidden = state.hidden
     prev_est, z_pred = state.estimate, state.depth
     if config.follow_box:
         xy = _box_transform(state.box, box, xy)
@@ -248,10 +273,22 @@ def point_predict(
         # The box height is inversely proportional to the person's depth.
         ok = (state.box[3] > 0) & (box[3] > 0)
         z_pred = jnp.where(ok, z_pred * state.box[3] / jnp.where(ok, box[3], 1.0), z_pred)
-    vel = _per_point(m.velocity_decay, p)[..., None] * vel
+    shown = jnp.zeros_like(hidden)
+    if config.visibility:
+        flip = jax.random.uniform(k_vis, hidden.shape) < jnp.where(
+            hidden, _per_point(m.p_show, p), _per_point(m.p_hide, p)
+        )
+        shown = hidden & flip
+        hidden = hidden ^ flip
+    decay = jnp.where(
+        hidden, _per_point(m.hidden_velocity_decay, p), _per_point(m.velocity_decay, p)
+    )
+    pos_noise = jnp.where(hidden, _per_point(m.hidden_pos_noise, p), _per_point(m.pos_noise, p))
+    pos_noise = jnp.where(shown, _per_point(m.reappear_spread, p), pos_noise)
+    vel = decay[..., None] * vel
     vel = vel + jax.random.normal(k_vel, vel.shape) * _per_point(m.vel_noise, p)[..., None]
-    xy = xy + vel + jax.random.normal(k_pos, xy.shape) * _per_point(m.pos_noise, p)[..., None]
-    return xy, vel, prev_est, z_pred
+    xy = xy + vel + jax.random.normal(k_pos, xy.shape) * pos_noise[..., None]
+    return xy, vel, hidden, prev_est, z_pred
 
 
 def spin_term(
@@ -290,17 +327,35 @@ def depth_term(params: PointWeightParams, bm: BodyModel, rc, z_pred: Array) -> A
     return jnp.where(z_pred[:, None] > 0, -0.5 * dz * dz, 0.0)
 
 
+def hidden_term(params: PointWeightParams, bm: BodyModel, rc, inside, z_pred: Array) -> Array:
+    """``[P, N]`` log-weight of hidden particles at window pixels ``rc``: ``hidden_log_weight``
+    where a surface more than ``occlusion_margin`` in front of the point's predicted depth
+    can hide it, ``-inf`` where the pixel shows a surface at or behind the point (which
+    would then be seen), has no depth or lies outside the window."""
+    p = rc.shape[0]
+    z = bm.depth[rc[..., 0], rc[..., 1]]
+    margin = _per_point(params.occlusion_margin, p)
+    in_front = inside & (z > 0) & (z < z_pred[:, None] - margin)
+    level = _per_point(params.hidden_log_weight, p)
+    return jnp.where(in_front, level, -jnp.inf)
+
+
 def point_weights(
     config: PointConfig,
     params: PointWeightParams,
     bm: BodyModel,
     state: PointState,
     xy: Array,
+    hidden: Array,
     z_pred: Array,
 ) -> tuple[Array, Array, Array]:
-    """``(log-weights [P, N], on body [P, N], spin completeness [P])``: the sum of the
-    configured terms (a product of likelihoods, thesis 6.2), no weight off the body
-    (masked, thesis 4.4)."""
+    """``(log-weights [P, N], on body [P, N], spin completeness [P])``. A visible particle
+    scores the sum of the configured terms (a product of likelihoods, thesis 6.2) and no
+    weight off the body (masked, thesis 4.4); a hidden one ``hidden_term``. The spin term is
+    taken relative to its median over the point's particles on the body, a likelihood ratio
+    against the surface around the point, so that a hidden particle (which sees none of
+    the point) competes with the visible ones on an even footing (a constant per point
+    leaves the visible particles' weights as they were)."""
     p, n = xy.shape[:2]
     rc, inside = window_pixels(bm, xy, config.window)
     on = inside & bm.body[rc[..., 0], rc[..., 1]]
@@ -308,12 +363,15 @@ def point_weights(
     complete = jnp.ones((p,), jnp.float32)
     if config.uses_spin:
         spin, complete = spin_term(config, params, bm, state, rc, on)
-        lw = lw + spin
+        level = jnp.nanmedian(jnp.where(on & jnp.isfinite(spin), spin, jnp.nan), axis=1)
+        lw = lw + spin - jnp.nan_to_num(level)[:, None]
     if config.uses_geodesic:
         lw = lw + geodesic_term(params, bm, state, rc)
     if config.depth_consistency:
         lw = lw + depth_term(params, bm, rc, z_pred)
     lw = jnp.where(on, lw, -jnp.inf)
+    if config.visibility:
+        lw = jnp.where(hidden, hidden_term(params, bm, rc, inside, z_pred), lw)
     return jnp.where(jnp.isnan(lw), -jnp.inf, lw), on, complete
 
 
@@ -324,24 +382,26 @@ def point_recover(
     prev_est: Array,
     xy: Array,
     vel: Array,
+    hidden: Array,
     lw: Array,
-) -> tuple[Array, Array, Array, Array]:
-    """Re-draw, with uniform weights and no velocity, the points whose every particle is
-    off the body, around the body pixel nearest their last estimate (kept as predicted
-    when the body is empty); returns ``(xy, vel, lw, recovered [P])``. The search for the
-    nearest body pixel runs only in a frame where some point is lost (``lax.cond``)."""
+) -> tuple[Array, Array, Array, Array, Array]:
+    """Re-draw, visible, with uniform weights and no velocity, the points whose every
+    particle has no weight (off the body, and nothing in front that could hide them),
+    around the body pixel nearest their last estimate (kept as predicted when the body is
+    empty); returns ``(xy, vel, hidden, lw, recovered [P])``. The search for the nearest
+    body pixel runs only in a frame where some point is lost (``lax.cond``)."""
     lost = jax.vmap(rs.all_weights_invalid)(lw)
 
     def redraw(_):
-        return _redraw_lost(params, key, bm, prev_est, xy, vel, lw, lost)
+        return _redraw_lost(params, key, bm, prev_est, xy, vel, hidden, lw, lost)
 
     def keep(_):
-        return xy, vel, lw, jnp.zeros_like(lost)
+        return xy, vel, hidden, lw, jnp.zeros_like(lost)
 
     return jax.lax.cond(jnp.any(lost), redraw, keep, None)
 
 
-def _redraw_lost(params, key, bm, prev_est, xy, vel, lw, lost):
+def _redraw_lost(params, key, bm, prev_est, xy, vel, hidden, lw, lost):
     """``point_recover``'s re-draw of the ``lost [P]`` points."""
     p = xy.shape[0]
     ji = dk.frame_to_window(bm.window, prev_est)
@@ -352,8 +412,9 @@ def _redraw_lost(params, key, bm, prev_est, xy, vel, lw, lost):
     recovered = lost & found
     xy = jnp.where(recovered[:, None, None], redraw, xy)
     vel = jnp.where(recovered[:, None, None], 0.0, vel)
+    hidden = hidden & ~recovered[:, None]
     lw = jnp.where(recovered[:, None], 0.0, lw)
-    return xy, vel, lw, recovered
+    return xy, vel, hidden, lw, recovered
 
 
 def point_resample(
@@ -370,35 +431,56 @@ def point_resample(
     )
 
 
+def point_estimate(xy: Array, hidden: Array, lw: Array) -> tuple[Array, Array, Array, Array]:
+    """``(mean [P, 2], best [P, 2], hidden share [P], reported hidden [P])`` of normalised
+    log-weights ``lw [P, N]``: a point is reported hidden when its hidden particles hold more
+    than half the weight, and its mean is then theirs (the last estimate moved on by the
+    predicted motion), else the visible particles' mean."""
+    wts = jnp.exp(lw)
+    share = jnp.sum(jnp.where(hidden, wts, 0.0), axis=1)
+    is_hidden = share > 0.5
+    group = hidden == is_hidden[:, None]
+    gw = jnp.where(group, wts, 0.0)
+    total = jnp.sum(gw, axis=1, keepdims=True)
+    gw = jnp.where(total > 0, gw / jnp.where(total > 0, total, 1.0), wts)
+    mean = jnp.sum(gw[..., None] * xy, axis=1)
+    best = jnp.take_along_axis(xy, jnp.argmax(lw, axis=1)[:, None, None], axis=1)[:, 0]
+    return mean, best, share, is_hidden
+
+
 def point_step(
     config: PointConfig, params: PointParams, key: Array, state: PointState, frame: PointFrame
 ) -> tuple[PointState, PointInfo]:
     """One frame: segment, predict, weigh, recover, estimate, resample."""
     p = state.particles.shape[0]
-    k_pos, k_vel, k_rec, k_res = jax.random.split(key, 4)
+    k_pos, k_vel, k_vis, k_rec, k_res = jax.random.split(key, 5)
     box = jnp.asarray(frame.box, jnp.float32)
     bm = body_model(config, frame.depth, box, frame.foreground)
-    xy, vel, prev_est, z_pred = point_predict(config, params, (k_pos, k_vel), state, box)
-    lw, on, complete = point_weights(config, params.weights, bm, state, xy, z_pred)
-    xy, vel, lw, recovered = point_recover(params.motion, k_rec, bm, prev_est, xy, vel, lw)
+    xy, vel, hidden, prev_est, z_pred = point_predict(
+        config, params, (k_pos, k_vel, k_vis), state, box
+    )
+    lw, on, complete = point_weights(config, params.weights, bm, state, xy, hidden, z_pred)
+    xy, vel, hidden, lw, recovered = point_recover(
+        params.motion, k_rec, bm, prev_est, xy, vel, hidden, lw
+    )
     lw = jax.vmap(rs.normalise_log_weights)(lw)
     ess = jax.vmap(rs.effective_sample_size)(lw)
-    wts = jnp.exp(lw)
-    mean = jnp.sum(wts[..., None] * xy, axis=1)
-    best = jnp.take_along_axis(xy, jnp.argmax(lw, axis=1)[:, None, None], axis=1)[:, 0]
+    mean, best, share, is_hidden = point_estimate(xy, hidden, lw)
     off = _per_point(params.estimate.joint_depth_offset, p)[:, 0]
     z_mean, z_best = jnp.split(surface_depth(config, bm, jnp.concatenate([mean, best])), 2)
-    particles, lw, resampled = point_resample(
-        config, k_res, lw, jnp.concatenate([xy, vel], -1), recovered
-    )
+    # A hidden point keeps its predicted depth: the surface under it is what hides it.
+    z_mean = jnp.where(is_hidden, z_pred, z_mean)
+    carried = jnp.concatenate([xy, vel, hidden[..., None].astype(jnp.float32)], -1)
+    carried, lw, resampled = point_resample(config, k_res, lw, carried, recovered)
     new_state = PointState(
-        particles,
+        carried[..., :4],
         lw,
         state.ref_spin,
         state.ref_geodesic,
         box,
         mean,
         jnp.where(z_mean > 0, z_mean, z_pred),
+        carried[..., 4] > 0.5,
     )
     info = PointInfo(
         mean=mean,
@@ -413,6 +495,8 @@ def point_step(
         mesh_resolution=bm.mesh_resolution,
         sweeps=bm.sweeps,
         spin_complete=complete,
+        hidden=is_hidden,
+        hidden_share=share,
         surface=body_points_3d(bm) if config.report_surface else None,
     )
     return new_state, info
