@@ -78,7 +78,11 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     _check_colour(source, start, first)
     _check_depth(args, source, start, first)
     if uses_depth:
-        _check_alignment([first, *(bg_frames or [])[:4]], source.describe())
+        more = (bg_frames or [])[:4]
+        if not more and not live:  # no background frames read: four spread over the recording
+            name = source.describe()
+            more = [register(source.read(i), name) for i in parse_background("4", len(source))]
+        _check_alignment([first, *more], source.describe())
     frames = itertools.chain([(start, first)], frames)
     return Inputs(start, box, frames, first, None if frameless else scene, calib, note, n_frames)
 
