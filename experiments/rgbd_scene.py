@@ -185,11 +185,13 @@ def ist_part(n_keys: int) -> dict | None:
     return out
 
 
-def _forget_compiles() -> None:
-    """Drop the compiled runs: every scene's window and length compiles its own, and an
-    XLA:CPU process that keeps hundreds of them runs out of memory maps."""
-    _runner.cache_clear()
-    jax.clear_caches()
+def _forget_compiles(keep: int = 6) -> None:
+    """Drop the compiled runs once more than ``keep`` configs hold them: every window and
+    length compiles its own, and an XLA:CPU process that keeps a few dozen runs out of
+    memory maps."""
+    if _runner.cache_info().currsize > keep:
+        _runner.cache_clear()
+        jax.clear_caches()
 
 
 def _mean(rows: list[dict], key: str) -> float:
