@@ -384,3 +384,34 @@ def test_cli_points_bad_input(extra, message, capsys):
     code = main(["walk_towards", "--max-frames", "2", "--no-progress", *extra])
     assert code == 2
     assert message in capsys.readouterr().err
+
+
+def test_layer2_foreground_without_background_frames_is_the_frames_own_scene(walk):
+    """Without background frames layer 1's background is unseen everywhere; layer 2's
+    foreground is then the depth nearer than the scene layer 1 reads in the same frame
+    (``rgbd.filter.unseen_scene``), so that a body made of every sizeable foreground
+    component is the walker, not the wall and floor behind him."""
+    seq, idx, _ = walk
+    base = dataclasses.replace(_config(seq, n_points=16), foreground=True)
+    points = dataclasses.replace(base.points.with_foreground(), report_surface=True)
+    config = dataclasses.replace(base, points=points)
+    params = _params(config)
+    context = Context(points=jnp.asarray(seq.joints2d[0, idx] + 0.5))
+    filt = build_cascade(config)
+    key = jax.random.PRNGKey(0)
+    state = jax.jit(filt.init)(
+        params,
+        key,
+        Frame(jnp.asarray(seq.colour[0]), jnp.asarray(seq.depth[0])),
+        jnp.asarray(seq.boxes[0]),
+        context,
+    )
+    _, info = jax.jit(filt.step)(
+        params, key, state, Frame(jnp.asarray(seq.colour[1]), jnp.asarray(seq.depth[1]))
+    )
+    body = np.asarray(info.points.surface)
+    body = body[np.all(np.isfinite(body), axis=1)]
+    z = seq.joints3d[1][:, 2]
+    assert len(body) > 200
+    # every body point at the walker's depth (his joints' range, +-0.4 m)
+    assert np.all((body[:, 2] > z.min() - 400) & (body[:, 2] < z.max() + 400))

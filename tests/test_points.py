@@ -260,10 +260,15 @@ def test_weight_terms_match_their_formulas_under_jit_and_vmap(sequence):
     # the weights are the sum of the terms on the body and -inf off it
     on = np.asarray(inside) & np.asarray(bm.body)[r, c]
     spin, _ = jax.jit(lambda b, s, q, o: pf.spin_term(cfg, wp, b, s, q, o))(bm, state, rc, on)
-    lw, on_w, _ = jax.jit(lambda b, s, x, z: pf.point_weights(cfg, wp, b, s, x, z))(
-        bm, state, xy, z_pred
+    hidden = jnp.zeros(xy.shape[:2], bool)
+    lw, on_w, _ = jax.jit(lambda b, s, x, h, z: pf.point_weights(cfg, wp, b, s, x, h, z))(
+        bm, state, xy, hidden, z_pred
     )
-    want = np.where(on, np.asarray(spin) + want_geo + want_depth, -np.inf)
+    # the spin term is relative to its median over the point's particles on the body
+    spin = np.asarray(spin)
+    level = np.nanmedian(np.where(on & np.isfinite(spin), spin, np.nan), axis=1)
+    spin = spin - np.nan_to_num(level)[:, None]
+    want = np.where(on, spin + want_geo + want_depth, -np.inf)
     want = np.where(np.isnan(want), -np.inf, want)
     np.testing.assert_array_equal(np.asarray(on_w), on)
     np.testing.assert_allclose(np.asarray(lw), want, rtol=1e-5, atol=1e-3)
@@ -367,3 +372,121 @@ def test_geodesic_edges_can_bridge_a_depth_jump_the_surface_graph_cuts():
             a_col = np.nonzero(arm.any(0))[0][0]
             edge = trunk[:, a_col - 1] & arm[:, a_col]
             assert edge.any() and g[arm].min() >= g[edge, a_col - 1].min() + 140.0
+
+
+HIDDEN = range(5, 9)  # frames in which a board in front hides the left hand
+
+
+def _occluded(frames):
+    """The sequence with a 13 x 13 px board 500 mm in front of the figure over its left hand
+    in the ``HIDDEN`` frames: the hand's ground truth is hidden there."""
+    depth = np.stack([f[0] for f in frames])
+    for t in HIDDEN:
+        x, y = np.floor(frames[t][3]["lh"]).astype(int)
+        depth[t, y - 6 : y + 7, x - 6 : x + 7] = 1500
+    return PointFrame(jnp.asarray(depth), jnp.asarray(np.stack([f[1] for f in frames])))
+
+
+def test_a_hidden_hand_is_reported_hidden_and_reacquired(sequence):
+    """Ground truth: the hand is hidden in ``HIDDEN``. Threshold: reported hidden in at least
+    3 of those 4 frames, visible in every other frame, and within 5 px of the hand again
+    two frames after it shows; without the visibility flags the hand is never reported
+    hidden."""
+    frames, _ = sequence
+    inputs = _occluded(frames)
+    gt = np.stack([f[3]["lh"] for f in frames[1:]])
+    hidden_gt = np.isin(np.arange(1, T), list(HIDDEN))
+    for visibility in (True, False):
+        cfg = dataclasses.replace(BASE, weighting="geodesic", visibility=visibility)
+        filt = build_point_filter(cfg)
+        run = jax.jit(
+            lambda k, inp, p0, f=filt: track(
+                f, default_point_params(), k, inp, inp.box[0], Context(points=p0)
+            )[1]
+        )
+        info = run(jax.random.PRNGKey(0), inputs, _start(frames))
+        reported = np.asarray(info.hidden)[:, 0]
+        if not visibility:
+            assert not reported.any()
+            continue
+        assert reported[hidden_gt].sum() >= 3, reported
+        assert not reported[~hidden_gt].any(), reported
+        err = np.linalg.norm(np.asarray(info.mean)[:, 0] - gt, axis=-1)
+        after = max(HIDDEN) + 2  # frame index t -> row t - 1
+        assert np.all(err[after - 1 :] < 5.0), err
+        assert np.all(err[: min(HIDDEN) - 1] < 5.0), err
+
+
+def test_hidden_term_and_reacquisition_match_their_references_under_jit_and_vmap(sequence):
+    """``hidden_term``: the level where the surface is more than the margin in front of the
+    predicted depth, ``-inf`` elsewhere; ``reacquire_logits`` against a loop over the window's
+    pixels; ``point_reacquire`` draws only the particles that show again, each onto a pixel
+    the logits allow, in proportion to their density."""
+    cfg = BASE
+    wp, bm, state, xy = _weight_inputs(sequence, cfg)
+    params = default_point_params()
+    rc, inside = pb.window_pixels(bm, xy, cfg.window)
+    z_pred = jnp.asarray([2100.0, 1900.0])
+    d = np.asarray(bm.depth)[np.asarray(rc[..., 0]), np.asarray(rc[..., 1])]
+    front = (
+        np.asarray(inside)
+        & (d > 0)
+        & (d < np.asarray(z_pred)[:, None] - float(wp.occlusion_margin))
+    )
+    want = np.where(front, float(wp.hidden_log_weight), -np.inf)
+    got = jax.jit(pf.hidden_term)(wp, bm, rc, inside, z_pred)
+    np.testing.assert_array_equal(np.asarray(got), want)
+    assert 0 < front.mean() < 1
+    got_v = jax.vmap(pf.hidden_term, in_axes=(None, None, 0, 0, None))(
+        wp, bm, jnp.stack([rc, rc]), jnp.stack([inside, inside]), z_pred
+    )
+    np.testing.assert_array_equal(np.asarray(got_v[1]), want)
+
+    prev = state.estimate
+    logits = np.asarray(jax.jit(pf.reacquire_logits)(params, bm, state, prev))
+    geo, valid = np.asarray(bm.geodesic), np.asarray(bm.spin_valid)
+    o, s = np.asarray(bm.window.origin), float(bm.window.scale)
+    ref = np.asarray(state.ref_geodesic)
+    want = np.full(logits.shape, -np.inf)
+    hw, ww = valid.shape
+    for p in range(2):
+        for r in range(hw):
+            for c in range(ww):
+                g = geo[:, r, c]
+                if not valid[r, c] or not np.isfinite(g).all():
+                    continue
+                centre = o + s * (np.array([c, r]) + 0.5)
+                dev = ((g - ref[p]) / float(params.weights.geo_sigma)) ** 2
+                d2 = np.sum((centre - np.asarray(prev[p])) ** 2)
+                spread = float(params.motion.reacquire_spread)
+                want[p, r * ww + c] = -0.5 * dev.sum() - 0.5 * d2 / spread**2
+    np.testing.assert_allclose(logits, want, rtol=1e-4, atol=1e-3)
+    assert np.isfinite(want).mean() > 0.05
+
+    n = 4000
+    shown = jnp.zeros((2, n), bool).at[0, : n // 2].set(True)
+    xy = jnp.zeros((2, n, 2))
+    vel = jnp.ones((2, n, 2))
+    reacq = jax.jit(pf.point_reacquire)
+    new_xy, new_vel = (
+        np.asarray(a) for a in reacq(params, jax.random.PRNGKey(1), bm, state, prev, xy, vel, shown)
+    )
+    np.testing.assert_array_equal(new_xy[0, n // 2 :], 0.0)
+    np.testing.assert_array_equal(new_xy[1], 0.0)
+    np.testing.assert_array_equal(new_vel[0, : n // 2], 0.0)
+    np.testing.assert_array_equal(new_vel[0, n // 2 :], 1.0)
+    ji = (new_xy[0, : n // 2] - o) / s
+    flat = np.floor(ji[:, 1]).astype(int) * ww + np.floor(ji[:, 0]).astype(int)
+    assert np.isfinite(want[0, flat]).all()
+    # the drawn pixels follow the density: its most likely tenth of pixels gets its share
+    prob = np.exp(want[0] - want[0].max())
+    prob /= prob.sum()
+    top = np.argsort(prob)[::-1][: max(1, np.isfinite(want[0]).sum() // 10)]
+    assert abs(np.isin(flat, top).mean() - prob[top].sum()) < 0.05
+    # vmapped over two keys, each as alone
+    keys = jax.random.split(jax.random.PRNGKey(2), 2)
+    both = jax.vmap(pf.point_reacquire, in_axes=(None, 0, None, None, None, None, None, None))(
+        params, keys, bm, state, prev, xy, vel, shown
+    )
+    one = reacq(params, keys[1], bm, state, prev, xy, vel, shown)
+    np.testing.assert_allclose(np.asarray(both[0][1]), np.asarray(one[0]), atol=1e-4)

@@ -78,6 +78,9 @@ class PointConfig:
     # surface hides is reported hidden, with its predicted motion, instead of being put on
     # the surface in front of it (``points.filter.hidden_term``).
     visibility: bool = True
+    # A particle that shows again is drawn from the body pixels at the point's geodesic
+    # distance from the references near its last estimate (``filter.point_reacquire``).
+    reacquire: bool = True
     ess_threshold: float = 1.0  # 1.0: resample every frame (SIR)
     resampler: str = "systematic"
     max_sweeps: int = 64  # geodesic relaxation sweeps (converges in 3-8)
@@ -110,9 +113,14 @@ class PointConfig:
     def with_foreground(self) -> PointConfig:
         """These settings for a body limited to a foreground mask: the union of the
         sizeable components, with the looser thresholds that keep a side-on person's near
-        arm and leg (apart from the trunk in depth) on it."""
+        arm and leg (apart from the trunk in depth) on it, and geodesics whose edges bridge
+        the depth jump between that arm and the trunk."""
         return dataclasses.replace(
-            self, seg_max_dz_mm=25.0, surface_max_dist_mm=40.0, min_component_fraction=0.05
+            self,
+            seg_max_dz_mm=25.0,
+            surface_max_dist_mm=40.0,
+            min_component_fraction=0.05,
+            geodesic_max_dist_mm=160.0,
         )
 
     @property

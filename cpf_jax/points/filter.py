@@ -60,6 +60,8 @@ __all__ = [
     "PointInfo",
     "point_init",
     "point_predict",
+    "reacquire_logits",
+    "point_reacquire",
     "spin_term",
     "geodesic_term",
     "depth_term",
@@ -84,6 +86,7 @@ class PointMotionParams(NamedTuple):
     p_hide: Array  # per frame, probability that a visible particle becomes hidden
     p_show: Array  # per frame, probability that a hidden particle becomes visible
     reappear_spread: Array  # px, std of the position noise of a particle that shows again
+    reacquire_spread: Array  # px, std of the prior around the last estimate, re-acquisition
 
 
 class PointWeightParams(NamedTuple):
@@ -113,10 +116,11 @@ POINTS = PointParams(
         velocity_decay=P(0.5, "sigmoid"),
         recovery_spread=P(2.0, "softplus"),
         hidden_pos_noise=P(3.0, "softplus"),
-        hidden_velocity_decay=P(0.95, "sigmoid"),
+        hidden_velocity_decay=P(0.5, "sigmoid"),
         p_hide=P(0.1, "sigmoid"),
         p_show=P(0.1, "sigmoid"),
         reappear_spread=P(6.0, "softplus"),
+        reacquire_spread=P(30.0, "softplus"),
     ),
     weights=PointWeightParams(
         spin_temperature=P(0.1, "softplus"),
@@ -254,8 +258,8 @@ def estimate_3d(config: PointConfig, params: PointParams, state: PointState) -> 
 
 def point_predict(
     config: PointConfig, params: PointParams, keys, state: PointState, box: Array
-) -> tuple[Array, Array, Array, Array, Array]:
-    """``(xy, velocity, hidden, previous estimate, predicted depth)`` after following the
+) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """``(xy, velocity, hidden, shown, previous estimate, predicted depth)`` after following the
     box, the visibility flags' Markov transition (visible -> hidden with ``p_hide``, hidden
     -> visible with ``p_show``) and the constant-velocity model with decay. A hidden
     particle keeps more of its velocity and spreads wider (the point moves on unseen); one
@@ -288,7 +292,59 @@ def point_predict(
     vel = decay[..., None] * vel
     vel = vel + jax.random.normal(k_vel, vel.shape) * _per_point(m.vel_noise, p)[..., None]
     xy = xy + vel + jax.random.normal(k_pos, xy.shape) * pos_noise[..., None]
-    return xy, vel, hidden, prev_est, z_pred
+    return xy, vel, hidden, shown, prev_est, z_pred
+
+
+def reacquire_logits(
+    params: PointParams, bm: BodyModel, state: PointState, prev_est: Array
+) -> Array:
+    """``[P, Hw * Ww]`` log-density over the window's pixels of where a hidden point shows
+    again: on the body (a pixel with a normal), at the geodesic distances from the references
+    it had at the start (thesis 4.3: a hand stays an arm's length from the head along the
+    surface), within ``reacquire_spread`` of its last estimate; ``-inf`` elsewhere."""
+    p = prev_est.shape[0]
+    r, hw, ww = bm.geodesic.shape
+    g = bm.geodesic.reshape(r, -1)  # [R, M]
+    dev = (g[None] - state.ref_geodesic[:, :, None]) / _per_point(params.weights.geo_sigma, p)[
+        ..., None
+    ]
+    ring = -0.5 * jnp.sum(dev * dev, 1)  # [P, M]
+    ring = jnp.where(jnp.all(jnp.isfinite(g), 0)[None], ring, -jnp.inf)
+    rows, cols = jnp.meshgrid(jnp.arange(hw), jnp.arange(ww), indexing="ij")
+    centres = pixel_centre(bm, jnp.stack([rows.reshape(-1), cols.reshape(-1)], -1))  # [M, 2]
+    d2 = jnp.sum((centres[None] - prev_est[:, None]) ** 2, -1)
+    prior = -0.5 * d2 / _per_point(params.motion.reacquire_spread, p) ** 2
+    return jnp.where(bm.spin_valid.reshape(-1)[None], ring + prior, -jnp.inf)
+
+
+def point_reacquire(
+    params: PointParams,
+    key: Array,
+    bm: BodyModel,
+    state: PointState,
+    prev_est: Array,
+    xy: Array,
+    vel: Array,
+    shown: Array,
+) -> tuple[Array, Array]:
+    """``(xy, velocity)`` with the particles that show again this frame (``shown [P, N]``)
+    drawn from ``reacquire_logits`` (inverse CDF per point), at rest: a hidden point comes
+    out where the body model says it can be, not only where it went in. Points with no such
+    pixel keep their predicted particles."""
+    logits = reacquire_logits(params, bm, state, prev_est)
+    top = jnp.max(logits, axis=1, keepdims=True)
+    ok = jnp.isfinite(top[:, 0])
+    probs = jnp.exp(logits - jnp.where(jnp.isfinite(top), top, 0.0))
+    cdf = jnp.cumsum(probs, axis=1)
+    k_u, k_j = jax.random.split(key)
+    u = jax.random.uniform(k_u, shown.shape) * cdf[:, -1:]
+    idx = jax.vmap(jnp.searchsorted)(cdf, u)
+    idx = jnp.clip(idx, 0, cdf.shape[1] - 1)
+    ww = bm.geodesic.shape[2]
+    drawn = pixel_centre(bm, jnp.stack([idx // ww, idx % ww], -1))
+    drawn = drawn + (jax.random.uniform(k_j, drawn.shape) - 0.5) * bm.window.scale
+    take = shown & ok[:, None]
+    return jnp.where(take[..., None], drawn, xy), jnp.where(take[..., None], 0.0, vel)
 
 
 def spin_term(
@@ -451,14 +507,16 @@ def point_estimate(xy: Array, hidden: Array, lw: Array) -> tuple[Array, Array, A
 def point_step(
     config: PointConfig, params: PointParams, key: Array, state: PointState, frame: PointFrame
 ) -> tuple[PointState, PointInfo]:
-    """One frame: segment, predict, weigh, recover, estimate, resample."""
+    """One frame: segment, predict, re-acquire, weigh, recover, estimate, resample."""
     p = state.particles.shape[0]
-    k_pos, k_vel, k_vis, k_rec, k_res = jax.random.split(key, 5)
+    k_pos, k_vel, k_vis, k_acq, k_rec, k_res = jax.random.split(key, 6)
     box = jnp.asarray(frame.box, jnp.float32)
     bm = body_model(config, frame.depth, box, frame.foreground)
-    xy, vel, hidden, prev_est, z_pred = point_predict(
+    xy, vel, hidden, shown, prev_est, z_pred = point_predict(
         config, params, (k_pos, k_vel, k_vis), state, box
     )
+    if config.visibility and config.reacquire:
+        xy, vel = point_reacquire(params, k_acq, bm, state, prev_est, xy, vel, shown)
     lw, on, complete = point_weights(config, params.weights, bm, state, xy, hidden, z_pred)
     xy, vel, hidden, lw, recovered = point_recover(
         params.motion, k_rec, bm, prev_est, xy, vel, hidden, lw
