@@ -112,6 +112,13 @@ CLI = [
     "--points",
     "auto",
 ]
+#: ``CLI`` as a user in the repository's root types it.
+CLI_SHOWN = [
+    "../shared/data/ist_piv_rgbd/images1",
+    *CLI[1:3],
+    "experiments/calib/ist_piv.json",
+    *CLI[4:],
+]
 
 
 def load(i: int, calib) -> tuple[np.ndarray, np.ndarray]:
@@ -429,7 +436,7 @@ def main() -> None:
         "floor_inlier_share": round(inlier_share, 3),
         "points_layer2_on_hand_checked_boxes": layer2,
         "points_cascade": {
-            "command": "cpf-track " + " ".join(CLI),
+            "command": "cpf-track " + " ".join(CLI_SHOWN),
             "auto": auto_line,
             "scores": cascade,
         },

@@ -378,12 +378,12 @@ HIDDEN = range(5, 9)  # frames in which a board in front hides the left hand
 
 
 def _occluded(frames):
-    """The sequence with a 13 x 13 px board 500 mm in front of the figure over its left hand
-    in the ``HIDDEN`` frames: the hand's ground truth is hidden there."""
+    """The sequence with a 41 x 41 px board 500 mm in front of the figure over its left hand
+    and arm in the ``HIDDEN`` frames: the hand's ground truth is hidden there."""
     depth = np.stack([f[0] for f in frames])
     for t in HIDDEN:
         x, y = np.floor(frames[t][3]["lh"]).astype(int)
-        depth[t, y - 6 : y + 7, x - 6 : x + 7] = 1500
+        depth[t, max(y - 20, 0) : y + 21, max(x - 20, 0) : x + 21] = 1500
     return PointFrame(jnp.asarray(depth), jnp.asarray(np.stack([f[1] for f in frames])))
 
 

@@ -185,4 +185,6 @@ def _auto_points(config, inputs: Inputs, background):
             f"{'; '.join(doubts)}); give the points as x,y;x,y;..."
         )
     print(f"--points auto: {found}", file=sys.stderr)
+    for doubt in doubts:  # accepted, but the box may not show every part asked for
+        print(f"--points auto: {doubt}", file=sys.stderr)
     return xy.astype(np.float32), AUTO_POINTS
