@@ -219,6 +219,15 @@ def _share(x) -> str:
     return "-" if x is None else f"{100 * x:.0f} %"
 
 
+def _reacquire(summ: dict) -> str:
+    """The frames-to-re-acquire cell: median (never of transitions), "-" without any."""
+    if not summ["reappearances"]:
+        return "-"
+    median = summ["median_frames_to_reacquire"]
+    shown = "-" if median is None else f"{median:g}"
+    return f"{shown} ({summ['never_reacquired']} of {summ['reappearances']})"
+
+
 def figure_errors(curves: dict, path: Path, title: str) -> None:
     """Error per frame (thesis Fig. 5.7 style), one panel per hand (``cpf_jax.charts``)."""
     from cpf_jax import charts
@@ -345,8 +354,7 @@ def main() -> None:
                 f"{summ['drift_ratio']} | {summ['median_error_visible_mm']} | "
                 f"{summ['drift_ratio_visible']} | {_share(summ['hidden_reported_share'])} | "
                 f"{_share(summ['visible_reported_hidden_share'])} | "
-                f"{summ['median_frames_to_reacquire']} ({summ['never_reacquired']} of "
-                f"{summ['reappearances']}) | {summ['head_median_error_mm']} | "
+                f"{_reacquire(summ)} | {summ['head_median_error_mm']} | "
                 f"{100 * summ['recovered_fraction']:.1f} % | {summ['seconds_per_run']} |"
             )
             print(case, method, summ, flush=True)

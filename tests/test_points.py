@@ -409,9 +409,10 @@ def test_a_hidden_hand_is_reported_hidden_and_reacquired(sequence):
         if not visibility:
             assert not reported.any()
             continue
+        err = np.linalg.norm(np.asarray(info.mean)[:, 0] - gt, axis=-1)
+        print("reported", reported.astype(int), "share", np.asarray(info.hidden_share)[:, 0].round(2), "err", err.round(1))
         assert reported[hidden_gt].sum() >= 3, reported
         assert not reported[~hidden_gt].any(), reported
-        err = np.linalg.norm(np.asarray(info.mean)[:, 0] - gt, axis=-1)
         after = max(HIDDEN) + 2  # frame index t -> row t - 1
         assert np.all(err[after - 1 :] < 5.0), err
         assert np.all(err[: min(HIDDEN) - 1] < 5.0), err
