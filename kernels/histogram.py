@@ -1032,12 +1032,11 @@ def box_histograms(bins: Array, rects: Array, n_bins: int, window: tuple | None 
 
     General, simple path for any rect list (clipped, empty, outside, larger than the
     frame). Up to ``SCATTER_MAX_RECTS`` rects (a static count) are counted by a masked
-    scatter-add each: over a static ``window = (h, w)`` placed on the rects when it covers
-    them (``window_origin``, ``window_covers``; the largest of several windows), else over
-    the frame; the two give the same counts, and a window a sixth of the frame costs a
-    sixth. More rects are counted
-    by the full-frame integral histogram (``rect_reduce`` with ``window=None``).
-    ``n_bins`` is static.
+    scatter-add each: over the first static window of ``window`` (one ``(h, w)`` or
+    several, smallest first) that covers them, placed on them (``window_origin``,
+    ``window_covers``), else over the frame; all give the same counts, and a window a
+    sixth of the frame costs a sixth. More rects are counted by the full-frame integral
+    histogram (``rect_reduce`` with ``window=None``). ``n_bins`` is static.
     """
     rects = jnp.asarray(rects, jnp.int32)
     n_rects = math.prod(rects.shape[:-1])
@@ -1045,19 +1044,26 @@ def box_histograms(bins: Array, rects: Array, n_bins: int, window: tuple | None 
         return rect_reduce(bins, rects, lambda counts: counts, n_bins=n_bins)
     fh, fw = bins.shape
     rects = clip_rect(rects, fw, fh)
-    if window is not None:
-        window = window_sizes(window)[-1]  # the largest of several
-    if window is None or (min(window[0], fh), min(window[1], fw)) == (fh, fw):
+    shapes = []
+    for h, w in window_sizes(window) if window is not None else ():
+        shape = (min(h, fh), min(w, fw))
+        if shape != (fh, fw) and shape not in shapes:
+            shapes.append(shape)
+    if not shapes:
         return _scatter_counts(bins, rects, n_bins)
-    shape, origin = _window_placement(rects, window, None, (fh, fw))
+    placed = [(shape, window_origin(rects, shape, (fh, fw))) for shape in shapes]
 
-    def in_window(_):
-        crop = lax.dynamic_slice(bins, (origin[0], origin[1]), shape)
-        shift = jnp.stack([origin[1], origin[0], origin[1], origin[0]])
-        return _scatter_counts(crop, rects - shift, n_bins)
+    def in_window(shape, origin):
+        def count(_):
+            crop = lax.dynamic_slice(bins, (origin[0], origin[1]), shape)
+            shift = jnp.stack([origin[1], origin[0], origin[1], origin[0]])
+            return _scatter_counts(crop, rects - shift, n_bins)
 
-    covered = batch_all(window_covers(rects, origin, shape, count_dtype=jnp.int32))
-    return lax.cond(covered, in_window, lambda _: _scatter_counts(bins, rects, n_bins), None)
+        return count
+
+    index = _rung_index(rects, placed, jnp.int32)
+    branches = [in_window(shape, origin) for shape, origin in placed]
+    return lax.switch(index, [*branches, lambda _: _scatter_counts(bins, rects, n_bins)], None)
 
 
 # ----------------------------------------------------------------------------- distances
