@@ -276,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="a few scenes and one key each")
     args = p.parse_args(argv)
     result: dict = {"host": host.describe(), "particles": PARTICLES, "walks": {}, "random": {}}
+    result["ist_images1"] = ist_part(1 if args.quick else IST_KEYS)
     for split, seeds in WALK_SEEDS.items():
         seeds = seeds[:1] if args.quick else seeds
         table = {}
@@ -299,7 +300,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{split} scene {s} {rows[-1]['camera']} {rows[-1]['runs']}", flush=True)
         result["random"][split] = _by_camera(rows)
         result.setdefault("random_rows", {})[split] = rows
-    result["ist_images1"] = ist_part(1 if args.quick else IST_KEYS)
     if args.quick:
         print(markdown(result))
         return 0
