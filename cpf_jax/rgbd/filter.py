@@ -76,6 +76,7 @@ __all__ = [
     "RGBDState",
     "RGBDInfo",
     "rgbd_init",
+    "unseen_scene",
     "score_particles",
     "rgbd_step",
     "build_rgbd_filter",
@@ -135,7 +136,7 @@ def rgbd_init(
     if background is None and config.side_scene is not None:
         # The box's depths against no background give the target's depth, and with it the
         # frame's scene.
-        obs = observe(config, params.foreground, frame, _unseen_scene(config, bg, frame, box, med))
+        obs = observe(config, params.foreground, frame, unseen_scene(config, bg, frame, box, med))
         _, med, _ = cell_statistics(config, obs, box)
     particles = at_rest(box, config.n_particles)
     if config.init_spread > 0:
@@ -166,7 +167,7 @@ def target_depth(medians: Array) -> Array:
     return masked_quantile(medians, medians > 0, 0.5)
 
 
-def _unseen_scene(
+def unseen_scene(
     config: RGBDConfig, background: Background, frame: Frame, est: Array, medians: Array
 ) -> Background:
     """``background`` with a scene behind its unseen pixels: the nearer of the plane
@@ -247,7 +248,7 @@ def rgbd_step(
     state = state._replace(depth=depth_template_predict(config, state.depth))
     scene = state.background
     if config.side_scene is not None:
-        scene = _unseen_scene(config, scene, frame, state.estimate, state.depth.depth)
+        scene = unseen_scene(config, scene, frame, state.estimate, state.depth.depth)
     obs = observe(config, params.foreground, frame, scene)
     proposal = propose(config, params, (k_prop, k_spread, k_det, k_rec), state, obs, frame.depth)
     log_lik, post, terms = score_particles(config, params, k_flag, state, obs, proposal)
