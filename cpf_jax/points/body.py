@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 from jax import Array, lax
 
@@ -170,10 +169,10 @@ def _geodesics(config: PointConfig, w: Array, body: Array, ref_pix: Array) -> tu
         & (jnp.arange(shape[1])[None, None, :] == ref_pix[:, 1, None, None])
         & body
     )
-    geo, sweeps = jax.vmap(
-        lambda s_: gk.geodesic_distances(w, s_, config.max_sweeps, return_sweeps=True)
-    )(src)
-    return geo, jnp.max(sweeps)
+    # One relaxation per reference (R is small and static) rather than a vmap: unbatched,
+    # the relaxation skips its last up sweep once a down sweep changes nothing.
+    runs = [gk.geodesic_distances(w, s_, config.max_sweeps, return_sweeps=True) for s_ in src]
+    return jnp.stack([g for g, _ in runs]), jnp.max(jnp.stack([k for _, k in runs]))
 
 
 class Segmentation(NamedTuple):
