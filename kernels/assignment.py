@@ -84,8 +84,8 @@ def linear_assignment(cost: Array) -> Assignment:
     cost = jnp.asarray(cost, jnp.float32)
     n, m = cost.shape
     size = max(n, m)
-    if size == 0:
-        return Assignment(jnp.zeros((n,), jnp.int32), jnp.zeros((m,), jnp.int32))
+    if n == 0 or m == 0:
+        return Assignment(jnp.full((n,), -1, jnp.int32), jnp.full((m,), -1, jnp.int32))
     ok = jnp.isfinite(cost)
     finite = jnp.where(ok, cost, 0.0)
     # Any matching with a forbidden pair costs more than any with one allowed pair more.

@@ -71,7 +71,8 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
         start, first = next(frames)
     except StopIteration:
         raise UsageError(f"{source.describe()}: no frame to track") from None
-    check_box(box, source.size, source.describe())
+    if box is not None or not getattr(args, "multi", False):
+        check_box(box, source.size, source.describe())
     if not live and source.gt_boxes is not None:
         check_groundtruth(source.gt_boxes, source.visible, source.size, source.describe())
     _check_colour(source, start, first)
@@ -232,7 +233,7 @@ def _start_and_box(
     recording (finite source)."""
     if args.start is not None and not 0 <= args.start < n_frames:
         raise UsageError(f"--start {args.start} is outside 0..{n_frames - 1}")
-    if auto:
+    if auto or getattr(args, "multi", False):  # the first frame found, or births
         return (0 if args.start is None else args.start), None
     start = source.first_visible if args.init is None else 0
     if args.start is not None:
@@ -266,11 +267,12 @@ def _open_live(args: argparse.Namespace, source, register, need_bg: bool, auto: 
     ``box`` is None with ``--init auto``.
     """
     where = source.describe()
-    if args.init is None:
+    multi = getattr(args, "multi", False)
+    if args.init is None and not multi:
         raise UsageError(
             f"{where}: a live source has no ground truth; give --init x,y,w,h or --init auto"
         )
-    box = None if auto else parse_box(args.init)
+    box = None if auto or multi else parse_box(args.init)
     mode = "auto" if args.background == "learn" else args.background  # learn: the finder's
     bg = parse_live_background(mode) if need_bg else (0, 0)
     start = bg[1] if args.start is None else args.start
