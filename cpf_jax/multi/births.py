@@ -6,8 +6,11 @@ person-shaped; OpenCV on the host), called from the jitted step through
 target explains (``claim.claimed_mask``), after the opening and closing of
 ``detect.clean_mask``. At most ``MultiConfig.max_births`` blobs, largest first, come back
 as fixed-size arrays. A blob starts a tentative target when its confidence
-(``detect.person_confidence``) reaches ``life.birth_confidence`` and it is not part of a found
-target (``part_of_found``). Each takes a free slot, or the slot of the lost
+(``detect.person_confidence``) reaches ``life.birth_confidence``, it is at least
+``life.birth_aspect`` as wide as tall (narrower: a limb, or a sliver of someone at the
+frame's edge) and it is not part of a found target (``part_of_found``); a blob that is part
+of one and makes its box larger starts that target again on the union (``reanchor``: he
+walked into view legs first). Each new target takes a free slot, or the slot of the lost
 target closest to being forgotten when none is free.
 """
 

@@ -160,6 +160,7 @@ def add_births(
         config.detect, config.max_births, obs.foreground & ~mine, frame.depth
     )
     ok = (cand.confidence >= params.life.birth_confidence) & (cand.box[:, 2] >= 1.0)
+    ok = ok & (cand.box[:, 2] >= params.life.birth_aspect * cand.box[:, 3])
     share = params.claim.duplicate_overlap
     widen, wider = births.reanchor(
         cand, ok, boxes, grown, z, gate, tracked, share, params.claim.reanchor_growth

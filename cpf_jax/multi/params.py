@@ -39,6 +39,7 @@ class LifeParams(NamedTuple):
     """Births, confirmation, loss and death (``tracks.py``)."""
 
     birth_confidence: Array  # least detector confidence (``detect.person_confidence``)
+    birth_aspect: Array  # least width / height of a new person's box (narrower: a limb)
     confirm: Array  # found frames in a row that confirm a tentative target
     tentative_misses: Array  # missed frames in a row that drop a tentative target
     lost_after: Array  # missed frames in a row after which a confirmed target is lost
@@ -76,6 +77,7 @@ TRACK_SPEC = (
     ),
     LifeParams(
         birth_confidence=P(0.3, "sigmoid", False),
+        birth_aspect=P(0.2, "softplus", False),
         confirm=P(3.0, "softplus", False),
         tentative_misses=P(2.0, "softplus", False),
         lost_after=P(15.0, "softplus", False),
