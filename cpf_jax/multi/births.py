@@ -69,20 +69,29 @@ def host_candidates(
 
 def detect_candidates(config: DetectConfig, n: int, mask: Array, depth: Array) -> Candidates:
     """The person-shaped blobs of ``mask [H, W] bool`` (module docstring), from inside
-    ``jit``, ``vmap`` (one host call per item) and ``lax.scan``."""
+    ``jit``, ``vmap`` (one host call per item) and ``lax.scan``; a mask with fewer pixels
+    than the detector's least person (``min_area``) is not sent to the host."""
     shapes = (
         jax.ShapeDtypeStruct((n, 4), jnp.float32),
         jax.ShapeDtypeStruct((n,), jnp.float32),
         jax.ShapeDtypeStruct((n,), jnp.float32),
     )
-    found = jax.pure_callback(
-        functools.partial(host_candidates, config, n),
-        shapes,
-        mask,
-        depth,
-        vmap_method="sequential",
-    )
-    return Candidates(*found)
+
+    def call(mask, depth):
+        return jax.pure_callback(
+            functools.partial(host_candidates, config, n),
+            shapes,
+            mask,
+            depth,
+            vmap_method="sequential",
+        )
+
+    def nobody(mask, depth):
+        return tuple(jnp.zeros(s.shape, s.dtype) for s in shapes)
+
+    # Fewer foreground pixels than the least person: no call to the host.
+    enough = jnp.sum(mask) >= config.min_area * mask.size
+    return Candidates(*jax.lax.cond(enough, call, nobody, mask, depth))
 
 
 def part_of_found(

@@ -15,10 +15,11 @@ __all__ = ["FREE", "TENTATIVE", "ACTIVE", "LOST", "STATUS_NAMES", "SLOT_LOOPS", 
 #: for re-identification until he is forgotten.
 FREE, TENTATIVE, ACTIVE, LOST = 0, 1, 2, 3
 STATUS_NAMES = ("free", "tentative", "active", "lost")
-#: How the slots' RGB-D steps run: all at once under ``vmap`` (one batched program; a
-#: histogram window is used only when every slot's cloud fits in its own), or one after
-#: another under ``lax.map`` (each slot takes its own fast or exact path).
-SLOT_LOOPS = ("vmap", "map")
+#: How the slots' RGB-D steps run: one after another under ``lax.map`` (each slot takes its
+#: own fast or exact histogram path, and free slots are skipped), or all at once under
+#: ``vmap`` (one batched program, every slot stepped; a histogram window is used only when
+#: every slot's cloud fits in its own, and each branch runs for every slot).
+SLOT_LOOPS = ("map", "vmap")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,7 +37,7 @@ class MultiConfig:
     max_targets: int = 6
     max_births: int = 3
     detect: DetectConfig = DetectConfig()
-    slot_loop: str = "vmap"
+    slot_loop: str = "map"
 
     def __post_init__(self) -> None:
         if self.max_targets < 1:

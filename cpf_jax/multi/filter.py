@@ -38,7 +38,7 @@ from jax import Array
 from cpf_jax.filter import Context, Filter, memoised_build
 from cpf_jax.kernels.background import Background
 from cpf_jax.multi import births, claim, tracks
-from cpf_jax.multi.config import ACTIVE, TENTATIVE, MultiConfig
+from cpf_jax.multi.config import ACTIVE, FREE, TENTATIVE, MultiConfig
 from cpf_jax.multi.params import MultiParams
 from cpf_jax.rgbd.depth import depth_tolerance, mean_known_depth
 from cpf_jax.rgbd.filter import build_rgbd_filter
@@ -111,9 +111,12 @@ def _init_slots(config, params: MultiParams, key, frame: Frame, boxes: Array, ba
     return jax.vmap(lambda k, b: filt.init(params.rgbd, k, frame, b, context))(keys, boxes)
 
 
-def step_slots(config: MultiConfig, params: MultiParams, keys: Array, slots, colour, depths):
+def step_slots(
+    config: MultiConfig, params: MultiParams, keys: Array, slots, colour, depths, live: Array
+):
     """Every slot's RGB-D step on ``Frame(colour, depths[k])``: ``(slots, infos)`` stacked
-    ``[K, ...]`` (``MultiConfig.slot_loop``: under ``vmap`` or ``lax.map``)."""
+    ``[K, ...]``. Under ``lax.map`` (``MultiConfig.slot_loop``) a slot that is not ``live
+    [K]`` is not stepped (its info says lost); under ``vmap`` every slot is."""
     filt = _slot_filter(config)
 
     def one(key, state, depth):
@@ -121,7 +124,18 @@ def step_slots(config: MultiConfig, params: MultiParams, keys: Array, slots, col
 
     if config.slot_loop == "vmap":
         return jax.vmap(one)(keys, slots, depths)
-    return jax.lax.map(lambda a: one(*a), (keys, slots, depths))
+    first = jax.tree_util.tree_map(lambda a: a[0], (keys, slots, depths))
+    shapes = jax.eval_shape(one, *first)[1]
+
+    def idle(key, state, depth):
+        info = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        return state, info._replace(lost=jnp.ones((), bool))
+
+    def slot(args):
+        go, key, state, depth = args
+        return jax.lax.cond(go, one, idle, key, state, depth)
+
+    return jax.lax.map(slot, (live, keys, slots, depths))
 
 
 def union(a: Array, b: Array) -> Array:
@@ -217,7 +231,9 @@ def multi_init(
     if m > k:
         raise ValueError(f"{m} initial boxes but max_targets is {k}")
     k_slots, k_birth = jax.random.split(key)
-    dummy = jnp.array([width / 4, height / 4, width / 2, height / 2], jnp.float32)
+    # Free slots hold a small box in the middle of the frame: under vmap every slot takes
+    # the fast histogram path only when every slot's cloud fits its window.
+    dummy = jnp.array([width / 2 - 8, height / 2 - 16, 16, 32], jnp.float32)
     start = jnp.tile(dummy, (k, 1))
     if m:
         start = start.at[:m].set(jnp.asarray(boxes, jnp.float32).reshape(m, 4))
@@ -271,7 +287,8 @@ def multi_step(
     )
     # track
     keys = jax.random.split(k_slots, k)
-    slots, infos = step_slots(config, params, keys, state.slots, frame.colour, depths)
+    live = tr.status != FREE
+    slots, infos = step_slots(config, params, keys, state.slots, frame.colour, depths, live)
     state = state._replace(slots=slots)
     obs = observe(config.rgbd, params.rgbd.foreground, frame, state.background)
     # judge
