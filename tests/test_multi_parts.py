@@ -52,15 +52,16 @@ def test_claim_owner_against_a_loop():
     check_kernel(claim.claim_owner, _owner_loop, args, batch=[args, other])
 
 
-def _slot_depths_loop(depth, owner, z, gate, margin, fake_margins):
+def _slot_depths_loop(depth, owner, z, gate, scene, fake_margins):
     out = np.repeat(depth[None].astype(np.float64), len(z), axis=0)
     for k in range(len(z)):
         fake = max(z[k] - fake_margins * max(400.0, 0.12 * z[k]), 1.0)
         for r in range(H):
             for c in range(W):
                 o = owner[r, c]
-                if o >= 0 and o != k and z[o] < z[k] + gate[k] and z[k] > 0:
-                    out[k, r, c] = min(depth[r, c], fake)
+                if o >= 0 and o != k and z[k] > 0:
+                    near = z[o] < z[k] + gate[k]
+                    out[k, r, c] = min(depth[r, c], fake) if near else scene[r, c]
     return np.round(out).astype(np.uint16)
 
 
@@ -70,17 +71,21 @@ def test_slot_depths_turn_others_pixels_into_occluders():
     owner = _owner_loop(depth, boxes, z, gate, np.ones(3, bool))
     params = default_multi_params().rgbd  # occlusion margin 400 mm or 12 % of the depth
 
-    def kernel(depth, owner, z, gate):
-        return claim.slot_depths(params, depth, owner, z, gate, 2.0)
+    scene = np.full((H, W), 4000.0, np.float32)
+    scene[:, :3] = 0.0  # no background depth there
 
-    def reference(depth, owner, z, gate):
-        return _slot_depths_loop(depth, owner, z, gate, None, 2.0)
+    def kernel(depth, owner, z, gate, scene):
+        return claim.slot_depths(params, depth, owner, z, gate, 2.0, scene)
 
-    check_kernel(kernel, reference, (depth, owner, z, gate))
-    out = reference(depth, owner, z, gate)
-    # A slot's own pixels are as they were; a farther target's pixels are left alone.
+    def reference(depth, owner, z, gate, scene):
+        return _slot_depths_loop(depth, owner, z, gate, scene, 2.0)
+
+    check_kernel(kernel, reference, (depth, owner, z, gate, scene))
+    out = reference(depth, owner, z, gate, scene)
+    # A slot's own pixels are as they were; a farther target's are the scene's depth; a
+    # nearer one's are in front of the slot's target.
     assert np.all(out[0][owner == 0] == depth[owner == 0])
-    assert np.all(out[0][owner == 2] == depth[owner == 2])
+    assert np.all(out[0][owner == 2] == scene[owner == 2])
     assert np.all(out[2][owner == 0] < z[2])
 
 
@@ -298,3 +303,55 @@ def test_config_errors(bad):
             MultiConfig(rgbd=RGBDConfig())
         else:
             MultiConfig(max_targets=0)
+
+
+def test_duplicates_prefer_the_target_found_longer():
+    boxes = np.array([[10, 10, 20, 60], [12, 12, 20, 60]], np.float32)
+    z = np.array([2000, 2050], np.float32)
+    gate = np.full(2, 300.0, np.float32)
+    # Slot 0 is older but just found someone after missing its own target.
+    tr = _tracks([ACTIVE, ACTIVE], hits=[1, 30], born=[0, 20])
+    lose = np.asarray(tracks.duplicates(np.float32(0.5), tr, np.ones(2, bool), boxes, z, gate))
+    np.testing.assert_array_equal(lose, [True, False])
+
+
+def test_verified_needs_the_remembered_colours_after_a_search():
+    tr = _tracks([ACTIVE, ACTIVE, LOST, ACTIVE], missed=[6, 6, 9, 1])
+    tr = tr._replace(appearance=np.array([[1, 0, 0, 0]] * 3 + [[0, 0, 0, 0]], np.float32))
+    found = np.ones(4, bool)
+    seen = np.array([0.2, 0.8, 0.9, 0.9], np.float32)
+    got = np.asarray(tracks.verified(found, tr, seen, np.float32(5.0), np.float32(0.5)))
+    # Like its memory; unlike after 6 misses; unlike after 9; no memory yet, 1 miss.
+    np.testing.assert_array_equal(got, [True, False, False, True])
+
+
+def test_box_depths_against_numpy():
+    from cpf_jax.kernels.cells import depth_bin_index
+    from cpf_jax.rgbd.observe import Observation
+
+    config = MultiConfig().rgbd
+    rng = np.random.default_rng(8)
+    depth = rng.uniform(1500, 3000, (H, W)).astype(np.uint16)
+    fg = rng.uniform(size=(H, W)) < 0.6
+    bins = np.asarray(depth_bin_index(depth, fg, config.depth_bins, *config.depth_range))
+    obs = Observation(np.zeros((H, W), np.int32), bins, fg)
+    boxes = np.array([[2, 3, 10, 15], [8, 2, 12, 18]], np.float32)
+    got = np.asarray(claim.box_depths(config, obs, boxes))
+    for k, (x, y, w, h) in enumerate(boxes.astype(int)):
+        sel = fg[y : y + h, x : x + w]
+        want = np.median(depth[y : y + h, x : x + w][sel])
+        # The median of log-spaced 64-bin histograms over 0.4-10 m: within half a bin.
+        assert abs(got[k] - want) < 0.03 * want, (got[k], want)
+
+
+def test_every_parameter_has_its_prop_beside_it():
+    import jax
+
+    from cpf_jax.multi import multi_props
+
+    params, props = default_multi_params(), multi_props()
+    leaves = jax.tree_util.tree_structure(params, is_leaf=lambda x: x is None)
+    assert leaves == jax.tree_util.tree_structure(
+        jax.tree_util.tree_map(lambda p: 0, props, is_leaf=lambda x: hasattr(x, "constraint")),
+        is_leaf=lambda x: x is None,
+    )

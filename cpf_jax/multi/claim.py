@@ -13,7 +13,9 @@ occluder margins nearer than the slot's target (or kept when already nearer). A 
 hidden behind another has its cells explained by the person in front (the RGB-D filter's
 occluded cells, paper eq. 1 with the depth-ordering rule), and a target beside a neighbour
 at his depth cannot take the neighbour's pixels for its own: the neighbour is in front of
-it as far as its filter can tell. Pixels of farther targets are left as they are.
+it as far as its filter can tell. Pixels of farther targets take the background's depth:
+to a nearer target they are scene, and a slot whose search for its lost target widens its
+depth gate cannot take a farther person for him.
 
 Conventions: depth ``[H, W]`` uint16 mm (0: missing), boxes ``[K, 4]`` xywh top-left in
 pixels (``cpf_jax.kernels.boxes``), target depths ``[K]`` mm (0: unknown).
@@ -27,6 +29,8 @@ import jax.numpy as jnp
 from jax import Array
 
 from cpf_jax.kernels import boxes as box_ops
+from cpf_jax.kernels.cells import histogram_quantile
+from cpf_jax.kernels.histogram import box_histograms
 from cpf_jax.rgbd.depth import depth_tolerance, mean_known_depth, occluder_margin
 
 __all__ = [
@@ -37,6 +41,7 @@ __all__ = [
     "slot_depths",
     "claimed_mask",
     "same_place",
+    "box_depths",
 ]
 
 
@@ -97,18 +102,23 @@ def claim_owner(depth: Array, boxes: Array, z: Array, gate: Array, claiming: Arr
     return jnp.where(jnp.any(cand, axis=0), best, -1)
 
 
-def slot_depths(rgbd_params, depth: Array, owner: Array, z: Array, gate: Array, margins) -> Array:
-    """``[K, H, W]`` uint16: the depth image each slot's filter sees (module docstring);
-    ``margins``: how many occluder margins nearer than the slot's target a claimed pixel
-    is put (``claim.fake_margins``)."""
+def slot_depths(
+    rgbd_params, depth: Array, owner: Array, z: Array, gate: Array, margins, scene: Array
+) -> Array:
+    """``[K, H, W]`` uint16: the depth image each slot's filter sees (module docstring):
+    the pixels another target claims are put ``margins`` occluder margins nearer than the
+    slot's target (``claim.fake_margins``; kept when nearer already) when that target is
+    at its depth or nearer, else given the depth of the scene behind, ``scene [H, W]`` mm
+    (the background model's; 0 where it has none): for a nearer target a farther person is
+    part of the background, and a slot searching for its lost target cannot take him."""
     d = depth.astype(jnp.float32)
     z_owner = jnp.where(owner >= 0, z[jnp.maximum(owner, 0)], 0.0)  # [H, W]
     fake = jnp.maximum(z - margins * occluder_margin(rgbd_params, z), 1.0)  # [K]
     k = jnp.arange(z.shape[0])
-    other = (owner[None] >= 0) & (owner[None] != k[:, None, None])
+    other = (owner[None] >= 0) & (owner[None] != k[:, None, None]) & (z > 0)[:, None, None]
     in_front = z_owner[None] < (z + gate)[:, None, None]
-    turn = other & in_front & (z > 0)[:, None, None]
-    out = jnp.where(turn, jnp.minimum(d[None], fake[:, None, None]), d[None])
+    occluder = jnp.minimum(d[None], fake[:, None, None])
+    out = jnp.where(other, jnp.where(in_front, occluder, scene[None]), d[None])
     return jnp.round(out).astype(depth.dtype)
 
 
@@ -138,3 +148,13 @@ def same_place(
     known = (za[:, None] > 0) & (zb[None] > 0)
     near = jnp.abs(za[:, None] - zb[None]) < jnp.maximum(ga[:, None], gb[None])
     return (jnp.maximum(x1 - x0, 0.0) / narrower >= share) & known & near
+
+
+def box_depths(config, obs, boxes: Array) -> Array:
+    """``[K]`` mm: the median depth of the foreground in each box ``[K, 4]`` of one
+    observation (``rgbd.observe.observe``; 0 where there is none), from its log-spaced depth
+    bins. Two boxes on one person measure one depth here, whatever each slot's templates
+    have learnt."""
+    rects = box_ops.xywh_to_rect(boxes)
+    counts = box_histograms(obs.depth_bins, rects, config.depth_bins)
+    return histogram_quantile(counts, config.depth_bins, *config.depth_range)[0]

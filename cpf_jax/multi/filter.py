@@ -170,6 +170,9 @@ def add_births(
     tracked = found & ((tr.status == ACTIVE) | (tr.status == TENTATIVE))
     grown = claim.grow(boxes, params.claim.margin)
     mine = claim.claimed_mask(frame.depth, grown, z, gate, tracked)
+    # Is a blob part of a tracked person? Both depths measured on this frame.
+    seen_z = claim.box_depths(config.rgbd, obs, boxes)
+    seen_gate = depth_tolerance(params.rgbd, seen_z)
     cand = births.detect_candidates(
         config.detect, config.max_births, obs.foreground & ~mine, frame.depth
     )
@@ -177,9 +180,9 @@ def add_births(
     ok = ok & (cand.box[:, 2] >= params.life.birth_aspect * cand.box[:, 3])
     share = params.claim.duplicate_overlap
     widen, wider = births.reanchor(
-        cand, ok, boxes, grown, z, gate, tracked, share, params.claim.reanchor_growth
+        cand, ok, boxes, grown, seen_z, seen_gate, tracked, share, params.claim.reanchor_growth
     )
-    ok = ok & ~births.part_of_found(cand, grown, z, gate, tracked, share)
+    ok = ok & ~births.part_of_found(cand, grown, seen_z, seen_gate, tracked, share)
     take = births.allocate(ok, tr.status, tr.missed, params.life.forget_after)
     started = take >= 0
     restart = started | widen
@@ -256,16 +259,16 @@ def multi_init(
 def _judge(config, params: MultiParams, state: MultiState, infos, obs, boxes) -> tuple:
     """Hits and misses, exclusion, and the status changes but confirmation; ``boxes [K,
     4]``: where each slot's target is (the estimate and the reported box)."""
-    slots, tr = state.slots, state.tracks
-    found = ~infos.lost
-    z = _target_depths(slots)
+    tr = state.tracks
+    # The templates' depths: a box's measured depth is the occluder's while one passes.
+    z = _target_depths(state.slots)
     gate = depth_tolerance(params.rgbd, z)
+    seen = tracks.seen_distance(_colours(config, obs, infos.box), tr)
+    appearance = params.reid.appearance
+    found = tracks.verified(~infos.lost, tr, seen, params.life.verify_after, appearance)
     tr = tracks.count_frames(tr, found)
     loser = tracks.duplicates(params.claim.duplicate_overlap, tr, found, boxes, z, gate)
-    seen = _colours(config, obs, infos.box)
-    tr, events = tracks.advance(
-        params.life, tr, found, loser, tracks.seen_distance(seen, tr), params.reid.appearance
-    )
+    tr, events = tracks.advance(params.life, tr, found, loser, seen, appearance)
     return tr, events, found & ~loser
 
 
@@ -283,7 +286,13 @@ def multi_step(
     grown = claim.grow(pred.box, params.claim.margin)
     owner = claim.claim_owner(frame.depth, grown, pred.depth, pred.gate, claiming)
     depths = claim.slot_depths(
-        params.rgbd, frame.depth, owner, pred.depth, pred.gate, params.claim.fake_margins
+        params.rgbd,
+        frame.depth,
+        owner,
+        pred.depth,
+        pred.gate,
+        params.claim.fake_margins,
+        state.background.depth,
     )
     # track
     keys = jax.random.split(k_slots, k)

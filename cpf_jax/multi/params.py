@@ -44,6 +44,7 @@ class LifeParams(NamedTuple):
     tentative_misses: Array  # missed frames in a row that drop a tentative target
     lost_after: Array  # missed frames in a row after which a confirmed target is lost
     forget_after: Array  # missed frames in a row after which a lost target dies
+    verify_after: Array  # missed frames after which a target found again must look like it
 
 
 class ReidParams(NamedTuple):
@@ -82,6 +83,7 @@ TRACK_SPEC = (
         tentative_misses=P(2.0, "softplus", False),
         lost_after=P(15.0, "softplus", False),
         forget_after=P(100.0, "softplus", False),
+        verify_after=P(5.0, "softplus", False),
     ),
     ReidParams(
         appearance=P(0.5, "sigmoid", False),

@@ -11,8 +11,10 @@ template, ``rgbd.templates``). Counts are in frames; ``LifeParams`` holds the th
 * A confirmed target missed ``lost_after`` frames in a row is lost: it is no longer
   reported, claims no pixels, and is kept ``forget_after`` missed frames for
   re-identification, then dies (its identity is never used again).
-* A lost target whose own filter finds it again for ``confirm`` frames, with body colours
-  within ``reid.appearance`` of the remembered ones, is confirmed again under its identity.
+* A target missed ``verify_after`` frames or more is found again by its filter only where
+  the body colours of the box it reports are within ``reid.appearance`` of the remembered
+  ones (``verified``); a lost target found again for ``confirm`` frames is confirmed again
+  under its identity.
 * Exclusion: two found targets whose boxes share ``claim.duplicate_overlap`` of the
   narrower one's columns at one depth are one person (``claim.same_place``); the
   confirmed (then the older) keeps him, the other is dropped (a tentative) or lost (a
@@ -37,6 +39,7 @@ __all__ = [
     "Events",
     "empty_tracks",
     "no_events",
+    "verified",
     "count_frames",
     "duplicates",
     "advance",
@@ -89,6 +92,20 @@ def no_events(k: int) -> Events:
     return Events(no, no, no, no, no, jnp.zeros((k,), jnp.int32))
 
 
+def verified(
+    found: Array, tracks: Tracks, seen_distance: Array, after: Array, appearance: Array
+) -> Array:
+    """``found [K]`` but for confirmed or lost targets missed ``after`` frames or more whose
+    reported box's body colours are farther than ``appearance`` from the remembered ones
+    (``seen_distance [K]``; no memory yet: no check): a filter that searched for its lost
+    target and found someone else has not found him."""
+    known = jnp.sum(tracks.appearance, axis=-1) > 0
+    searched = ((tracks.status == ACTIVE) | (tracks.status == LOST)) & (
+        tracks.missed.astype(jnp.float32) >= after
+    )
+    return found & ~(searched & known & (seen_distance > appearance))
+
+
 def count_frames(tracks: Tracks, found: Array) -> Tracks:
     """Hits and misses in a row of the slots' filters (``found [K] bool``)."""
     hits = jnp.where(found, tracks.hits + 1, 0)
@@ -100,15 +117,31 @@ def duplicates(
     share: Array, tracks: Tracks, found: Array, boxes: Array, depth: Array, gate: Array
 ) -> Array:
     """``[K] bool``: found targets that are one person with a found target of higher
-    priority (confirmed over tentative, then older, then the lower slot): boxes ``[K, 4]``
-    sharing ``share`` of their columns at one depth (``claim.same_place``)."""
+    priority: boxes ``[K, 4]`` sharing ``share`` of their columns at one depth
+    (``claim.same_place``). Confirmed targets go before tentative ones, then those found
+    in more frames in a row (a target that finds someone after missing its own is the
+    likelier mistake), then the older, then the lower slot."""
     k = tracks.status.shape[0]
     live = found & ((tracks.status == ACTIVE) | (tracks.status == TENTATIVE))
     pair = same_place(boxes, depth, gate, boxes, depth, gate, share)
     pair = pair & live[:, None] & live[None] & ~jnp.eye(k, dtype=bool)
-    slot = jnp.arange(k, dtype=jnp.int32)
-    prio = jnp.where(tracks.status == ACTIVE, 1 << 28, 0) - tracks.born * 64 - slot
-    return jnp.any(pair & (prio[None] > prio[:, None]), axis=1)
+    return jnp.any(pair & _goes_before(tracks), axis=1)
+
+
+def _goes_before(tracks: Tracks) -> Array:
+    """``[K, K] bool``: slot ``j`` (columns) goes before slot ``i`` (rows) in exclusion."""
+    key = (
+        (tracks.status == ACTIVE).astype(jnp.int32),
+        tracks.hits,
+        -tracks.born,
+        -jnp.arange(tracks.status.shape[0], dtype=jnp.int32),
+    )
+    before = jnp.zeros((len(tracks.hits),) * 2, bool)
+    tied = jnp.ones_like(before)
+    for v in key:  # lexicographic: the first key that differs decides
+        before = before | (tied & (v[None] > v[:, None]))
+        tied = tied & (v[None] == v[:, None])
+    return before
 
 
 def advance(
