@@ -245,7 +245,7 @@ def single_target(colour, depth, bg, gt) -> dict:
     from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
 
     box = gt[IST_START]
-    config = RGBDConfig(learn_scene=False).with_window(tuple(box[2:]), colour.shape[1:3])
+    config = RGBDConfig(side_scene=None).with_window(tuple(box[2:]), colour.shape[1:3])
     filt = build_rgbd_filter(config)
     frames = Frame(jnp.asarray(colour[IST_START:]), jnp.asarray(depth[IST_START:]))
     boxes, lost = jax.jit(

@@ -33,10 +33,13 @@ background, in colour and in depth. Here:
   row, so that 150 full-HD candidates need about 1/16 of the memory of their
   full-resolution median.
 * A pixel the model has never seen (colour ``< 0``, :data:`UNSEEN`) is unknown:
-  :func:`scene_outside` makes a model of one frame with the target's pixels unknown,
-  :func:`behind_plane` gives the unknown pixels a surface just behind a depth (the target's:
-  whatever is nearer is foreground, the wall behind it is not), and
-  :func:`learn_unseen` gives them the frame's values once they show outside the box.
+  :func:`behind_plane` gives the unknown pixels a surface (just behind the target: whatever
+  is nearer is foreground, the wall behind it is not).
+* :func:`side_scene` is a scene model of one frame alone, for a camera that moves or a
+  scene never seen empty: behind a pixel lies the farthest surface found along its row
+  at given distances to either side (wider than the target), so a person, narrower than
+  those distances, stands in front of it, and a floor or a wall, which continues along
+  the row, does not.
 * :func:`update_background` is the optional running update: a blend
   ``(1 - rate) bg + rate frame`` on background pixels only (foreground never
   leaks into the model), depth only where the frame measured it; a pixel with
@@ -49,6 +52,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -62,10 +66,8 @@ __all__ = [
     "quiet_frames",
     "update_background",
     "UNSEEN",
-    "box_mask",
-    "scene_outside",
     "behind_plane",
-    "learn_unseen",
+    "side_scene",
 ]
 
 #: Colour of a background pixel never seen: every frame's colour differs from it.
@@ -239,41 +241,34 @@ def update_background(
     return Background(new_col, new_dep)
 
 
-def box_mask(shape: tuple[int, int], box: Array, grow: float = 0.0) -> Array:
-    """``[H, W] bool``: the pixels whose centres lie in ``box`` (xywh) grown by ``grow`` of
-    its size on every side."""
-    box = jnp.asarray(box, jnp.float32)
-    lo = box[:2] - grow * box[2:4]
-    hi = box[:2] + (1.0 + grow) * box[2:4]
-    ys = jnp.arange(shape[0], dtype=jnp.float32) + 0.5
-    xs = jnp.arange(shape[1], dtype=jnp.float32) + 0.5
-    in_y = (ys >= lo[1]) & (ys < hi[1])
-    in_x = (xs >= lo[0]) & (xs < hi[0])
-    return in_y[:, None] & in_x[None, :]
-
-
-def scene_outside(colour: Array, depth: Array, hidden: Array) -> Background:
-    """One frame (``[H, W, 3]`` uint8, ``[H, W]`` uint16) as a background model, with the
-    pixels where ``hidden [H, W] bool`` (the target and what it may hide) unseen."""
-    col = jnp.where(hidden[..., None], UNSEEN, jnp.asarray(colour).astype(jnp.float32))
-    dep = jnp.where(hidden, 0.0, jnp.asarray(depth).astype(jnp.float32))
-    return Background(col, dep)
-
-
 def behind_plane(background: Background, z: Array) -> Background:
-    """``background`` with its unseen pixels given depth ``z`` (mm, a scalar; 0 leaves
-    them without depth, so that colour decides and every pixel there is foreground)."""
+    """``background`` with its unseen pixels given depth ``z`` (mm, a scalar or ``[H, W]``;
+    0 leaves them without depth, so that colour decides and every pixel there is
+    foreground)."""
     unseen = background.colour[..., 0] < 0
     return background._replace(depth=jnp.where(unseen, z, background.depth))
 
 
-def learn_unseen(
-    background: Background, colour: Array, depth: Array, keep_out: Array
-) -> Background:
-    """``background`` with every unseen pixel outside ``keep_out [H, W] bool`` (the target
-    and what may be hiding behind it) set to the frame's colour and depth."""
-    unseen = background.colour[..., 0] < 0
-    learn = unseen & ~jnp.asarray(keep_out, bool)
-    col = jnp.where(learn[..., None], jnp.asarray(colour).astype(jnp.float32), background.colour)
-    dep = jnp.where(learn, jnp.asarray(depth).astype(jnp.float32), background.depth)
-    return Background(col, dep)
+def side_scene(depth: Array, offsets: Array) -> Array:
+    """``[H, W] float32`` mm: each pixel's scene depth, the farthest measured depth among
+    the pixels of its row at ``x - o`` and ``x + o`` for each ``o`` of ``offsets [K]``
+    (pixels, rounded; samples outside the frame or without depth are skipped; 0 where
+    none has depth).
+
+    ``depth [H, W]`` mm, 0 = missing. The farthest sample is the scene because whatever
+    stands between the camera and the scene at a side (another person, a pole) is nearer:
+    one sample that reaches the scene is enough. A plane such as a level floor keeps its
+    depth along a row, and a wall changes it slowly, so neither stands out from its own
+    scene; an object narrower than the offsets does.
+    """
+    z = jnp.asarray(depth).astype(jnp.float32)
+    height, width = z.shape
+    # Zeros on either side stand for the samples outside the frame (no depth): shifted
+    # copies are then slices, which XLA:CPU copies far faster than it gathers columns.
+    padded = jnp.pad(z, ((0, 0), (width, width)))
+    steps = jnp.clip(jnp.round(jnp.asarray(offsets, jnp.float32)).astype(jnp.int32), 0, width)
+    scene = jnp.zeros_like(z)
+    for k in range(steps.shape[0]):
+        for start in (width - steps[k], width + steps[k]):
+            scene = jnp.maximum(scene, jax.lax.dynamic_slice(padded, (0, start), (height, width)))
+    return scene

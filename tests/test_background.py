@@ -15,15 +15,13 @@ from cpf_jax.kernels.background import (
     UNSEEN,
     Background,
     behind_plane,
-    box_mask,
     foreground_mask,
     foreground_shares,
-    learn_unseen,
     masked_median,
     masked_quantile,
     median_background,
     quiet_frames,
-    scene_outside,
+    side_scene,
     update_background,
 )
 from cpf_jax.kernels.boxes import xywh_to_rect
@@ -246,92 +244,56 @@ def test_running_update_only_touches_background_pixels():
     np.testing.assert_array_equal(d1[miss], d0[miss])
 
 
-def _box_mask_reference(shape, box, grow):
-    """Pixel centres ``(i + 0.5)`` inside the grown box, by loops."""
-    x, y, w, h = (float(v) for v in box)
-    out = np.zeros(shape, bool)
-    for i in range(shape[0]):
-        for j in range(shape[1]):
-            cx, cy = j + 0.5, i + 0.5
-            out[i, j] = (x - grow * w <= cx < x + (1 + grow) * w) and (
-                y - grow * h <= cy < y + (1 + grow) * h
-            )
-    return out
+def _behind_plane_reference(colour, depth, z):
+    unseen = colour[..., 0] < 0
+    return np.where(unseen, np.broadcast_to(z, depth.shape), depth).astype(np.float32)
 
 
-def test_box_mask_holds_the_pixel_centres_of_the_grown_box():
-    boxes = [
-        np.array([5.3, 4.0, 9.4, 7.7], np.float32),
-        np.array([-3.0, 10.0, 8.0, 30.0], np.float32),
-    ]
-    for grow in (0.0, 0.25):
-        check_kernel(
-            lambda b, g=grow: box_mask((H, W), b, g),
-            lambda b, g=grow: _box_mask_reference((H, W), b, g),
-            (boxes[0],),
-            batch=[(b,) for b in boxes],
-        )
-
-
-def _scene_reference(colour, depth, hidden, z, keep_out, colour2, depth2):
-    """The unseen-pixel model by hand: hide, put a plane behind, learn outside keep_out."""
-    col = np.where(hidden[..., None], UNSEEN, colour.astype(np.float32))
-    dep = np.where(hidden, 0.0, depth.astype(np.float32))
-    plane = np.where(hidden, z, dep)
-    learn = hidden & ~keep_out
-    col2 = np.where(learn[..., None], colour2.astype(np.float32), col)
-    dep2 = np.where(learn, depth2.astype(np.float32), dep)
-    return plane, col2, dep2
-
-
-def _scene_kernel(colour, depth, hidden, z, keep_out, colour2, depth2):
-    bg = scene_outside(colour, depth, hidden)
-    learnt = learn_unseen(bg, colour2, depth2, keep_out)
-    return behind_plane(bg, z).depth, learnt.colour, learnt.depth
-
-
-def test_the_unseen_scene_is_hidden_put_behind_the_target_and_learnt_outside_it():
-    colour, depth = _stack(5)
+def test_behind_plane_gives_only_the_unseen_pixels_a_depth():
+    colour, depth = _stack(3)
     items = []
-    for k in range(2):
-        hidden = np.zeros((H, W), bool)
-        hidden[4 + k : 15, 6 : 20 - k] = True
-        keep_out = np.zeros((H, W), bool)
-        keep_out[8:20, 10 + k : 28] = True
-        items.append(
-            (
-                colour[k],
-                depth[k],
-                hidden,
-                np.float32(2500 + k),
-                keep_out,
-                colour[k + 2],
-                depth[k + 2],
-            )
-        )
-    check_kernel(_scene_kernel, _scene_reference, items[0], batch=items, atol=0.0, rtol=0.0)
-    # The model's rules on one frame: only unseen pixels take the plane and the new frame.
-    c, d, hidden, z, keep_out, c2, d2 = items[0]
-    plane, col2, dep2 = (np.asarray(a) for a in _scene_kernel(*items[0]))
-    assert (plane[hidden] == z).all() and (plane[~hidden] == d[~hidden]).all()
-    assert (col2[hidden & keep_out] == UNSEEN).all()
-    assert (dep2[~hidden] == d[~hidden]).all() and (
-        dep2[hidden & ~keep_out] == d2[hidden & ~keep_out]
-    ).all()
-
-
-def test_an_unseen_pixel_takes_the_frame_s_colour_in_the_running_update():
-    colour, depth = _stack(7)
-    hidden = np.zeros((H, W), bool)
-    hidden[2:6, 3:9] = True
-    bg = scene_outside(colour[0], depth[0], hidden)
-    new = update_background(bg, colour[1], depth[1], np.zeros((H, W), bool), 0.1)
-    np.testing.assert_array_equal(
-        np.asarray(new.colour)[hidden], colour[1][hidden].astype(np.float32)
+    for k, z in enumerate((np.float32(2500.0), depth[2].astype(np.float32) + 7.0)):
+        col = colour[k].astype(np.float32)
+        col[2 + k : 9, 4:12] = UNSEEN
+        items.append((col, depth[k].astype(np.float32), np.broadcast_to(z, depth[k].shape)))
+    check_kernel(
+        lambda c, d, z: behind_plane(Background(c, d), z).depth,
+        _behind_plane_reference,
+        items[0],
+        batch=items,
+        atol=0.0,
+        rtol=0.0,
     )
 
 
-# -- cells ------------------------------------------------------------------------------
+def _side_scene_reference(depth, offsets):
+    """The side scene by a loop over pixels and offsets."""
+    h, w = depth.shape
+    out = np.zeros((h, w), np.float32)
+    for y in range(h):
+        for x in range(w):
+            for o in np.round(offsets).astype(int):
+                for c in (x - o, x + o):
+                    if 0 <= c < w:
+                        out[y, x] = max(out[y, x], float(depth[y, c]))
+    return out
+
+
+def test_side_scene_is_the_farthest_depth_at_the_offsets_along_the_row():
+    _, depth = _stack(4)
+    depth = depth.copy()
+    depth[0, 3:9] = 0  # holes are skipped
+    items = [(depth[k], np.array([3.4 + k, 7.0], np.float32)) for k in range(3)]
+    check_kernel(side_scene, _side_scene_reference, items[0], batch=items, atol=0.0, rtol=0.0)
+    # A person narrower than the offsets in front of a wall over a level floor: the person
+    # is nearer than the scene, the floor's rows and the wall are their own scene.
+    scene = np.full((12, 40), 5000, np.uint16)
+    scene[8:] = np.array([3000, 2700, 2400, 2100], np.uint16)[:, None]  # a floor, nearer by row
+    person = scene.copy()
+    person[2:10, 18:24] = 2000
+    got = np.asarray(side_scene(person, np.array([5.0, 10.0], np.float32)))
+    assert (got[2:8, 18:24] == 5000).all() and (got[8:10, 18:24] == person[8:10, :1]).all()
+    assert (got[:, :12] == scene[:, :12]).all()
 
 
 def test_grid_cells_tile_the_box_exactly():

@@ -330,10 +330,10 @@ def test_rgbd_model_on_a_synthetic_scenario_with_its_empty_room(tmp_path, capsys
     assert np.all(ious > 0.5), ious
 
 
-def test_default_background_is_the_recordings_empty_frames(tmp_path, capsys):
+def test_background_auto_is_the_recordings_empty_frames(tmp_path, capsys):
     # A recording of the empty room (frames 0-4), then occlusion_return's walker, who
     # never uncovers the middle of the view (10 frames): evenly spaced frames' median
-    # would hold him; --background auto (the default) takes the empty frames.
+    # would hold him; --background auto takes the empty frames.
     from cpf_jax.io.synthetic import SyntheticSource
 
     seq = make_sequence("occlusion_return", seed=0, n_frames=10)
@@ -349,7 +349,7 @@ def test_default_background_is_the_recordings_empty_frames(tmp_path, capsys):
     lines += [f"{x + 1:.0f},{y + 1:.0f},{w:.0f},{h:.0f}" for x, y, w, h in seq.boxes]
     (tmp_path / "groundtruth_rect.txt").write_text("\n".join(lines) + "\n")
     argv = [str(tmp_path), "--model", "rgbd", "--particles", "16", "--max-frames", "1"]
-    assert main([*argv, "--no-progress"]) == 0
+    assert main([*argv, "--background", "auto", "--no-progress"]) == 0
     err = capsys.readouterr().err
     assert "note: background: median of the 5 of 15 frames with the least foreground (0-4;" in err
     assert main([*argv, "--background", "15", "--no-body-term", "--no-progress"]) == 0
@@ -363,7 +363,7 @@ def test_background_option_forms():
     assert len(parse_background("auto", 1000)) == AUTO_CANDIDATES
     assert parse_background("3", 9) == [0, 4, 8] and parse_background("2:5", 9) == [2, 3, 4]
     assert parse_live_background("auto") == (0, 25) and parse_live_background("7") == (0, 7)
-    with pytest.raises(UsageError, match="--background expects auto, empty"):
+    with pytest.raises(UsageError, match="--background expects none, auto, empty"):
         parse_background("often", 9)
 
 
@@ -659,27 +659,21 @@ def test_rows_hold_copies_not_views_of_the_steps_arrays():
     assert row.points2d.shape == (0, 2) and row.points3d.shape == (0, 3)
 
 
-def test_background_learn_reads_no_background_frames(tmp_path, capsys):
-    # --background learn: the RGB-D filter learns the scene from the tracked frames
-    # (RGBDConfig.learn_scene) and no frame is read for a background model.
+def test_background_none_is_the_default_and_reads_no_background_frames(tmp_path, capsys):
+    # --background none (the default): the RGB-D filter takes each frame's scene from the
+    # frame (RGBDConfig.side_scene) and no frame is read for a background model.
     from cpf_jax.cli import build_parser
     from cpf_jax.io import open_source
 
     to_folder(make_sequence("walk_towards", seed=0, n_frames=6), tmp_path)
-    for background, learnt in (("learn", True), ("auto", False)):
-        args = build_parser().parse_args(
-            [str(tmp_path), "--model", "rgbd", "--background", background]
-        )
+    for extra, frameless in (
+        ([], True),
+        (["--background", "none"], True),
+        (["--background", "auto"], False),
+    ):
+        args = build_parser().parse_args([str(tmp_path), "--model", "rgbd", *extra])
         inputs = open_inputs(args, open_source(args.path))
-        assert (inputs.background is None) == learnt, background
-    argv = [
-        str(tmp_path),
-        "--model",
-        "grid-occlusion",
-        "--background",
-        "learn",
-        "--particles",
-        "16",
-    ]
+        assert (inputs.background is None) == frameless, extra
+    argv = [str(tmp_path), "--model", "grid-occlusion", "--particles", "16"]
     assert main([*argv, "--no-progress", "--out", str(tmp_path / "b.csv")]) == 0
     assert "background: median" not in capsys.readouterr().err

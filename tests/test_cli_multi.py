@@ -76,7 +76,7 @@ def test_multi_writes_mot_lines_and_scores_them(folder, tmp_path, capsys):
     "extra, message",
     [
         (["--multi", "--init", "1,2,3,4"], "do not go with --multi"),
-        (["--multi", "--background", "learn"], "background model"),
+        (["--multi", "--background", "learn"], "--background expects"),
         (["--mot", "x.txt"], "go with --multi"),
         (["--multi", "--max-people", "0"], "--max-people"),
     ],

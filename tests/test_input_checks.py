@@ -268,6 +268,11 @@ def test_the_command_line_warns_when_depth_is_not_registered(seq, tmp_path):
     args = build_parser().parse_args([str(path), "--model", "rgbd", "--background", "2"])
     with pytest.warns(InputWarning, match=r"depth edges lie 10 px left.*offset_px\": \[10, 0\]"):
         open_inputs(args, open_source(str(path)))
+    # Without background frames (the default) the start frame and four spread over the
+    # recording are checked.
+    args = build_parser().parse_args([str(path), "--model", "rgbd"])
+    with pytest.warns(InputWarning, match=r"depth edges lie 10 px left.* in 5 frames"):
+        open_inputs(args, open_source(str(path)))
     args = build_parser().parse_args(["walk_across_slow", "--model", "rgbd"])
     with warnings.catch_warnings():
         warnings.simplefilter("error", InputWarning)  # registered depth: no word

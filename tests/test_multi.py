@@ -35,7 +35,7 @@ def _background(seq) -> Background:
 
 
 def _config(seq, n_particles=100, max_targets=3) -> MultiConfig:
-    rgbd = RGBDConfig(learn_scene=False, n_particles=n_particles)
+    rgbd = RGBDConfig(side_scene=None, n_particles=n_particles)
     config = MultiConfig(rgbd=rgbd, max_targets=max_targets)
     return config.with_window((102.0, 212.0), seq.colour.shape[1:3])
 

@@ -294,13 +294,11 @@ def test_reid_cost_against_a_loop():
     assert np.isfinite(got).sum() >= 2
 
 
-@pytest.mark.parametrize("bad", ["learn", "slots"])
+@pytest.mark.parametrize("bad", ["births", "slots"])
 def test_config_errors(bad):
-    from cpf_jax.rgbd import RGBDConfig
-
-    with pytest.raises(ValueError, match="learn_scene|max_targets"):
-        if bad == "learn":
-            MultiConfig(rgbd=RGBDConfig())
+    with pytest.raises(ValueError, match="max_births|max_targets"):
+        if bad == "births":
+            MultiConfig(max_births=0)
         else:
             MultiConfig(max_targets=0)
 

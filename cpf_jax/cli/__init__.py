@@ -9,14 +9,14 @@ Observation models (``--model``): ``rgb`` is the colour layer
 are the RGB-D filter's variants (``cpf_jax.rgbd``). Depth is registered to
 colour first when a calibration is in effect: ``--calib FILE``, or the
 folder's own ``calibration.json`` (``cpf_jax.registration`` format). The RGB-D
-models learn a background from ``--background`` frames of the recording: by default
-(``auto``) the median of the frames, among up to 150 evenly spaced ones, with the least
-foreground in front of the farthest surface each pixel shows in a fifth of them (a share
-at most twice the quietest's plus 1 % of the frame; at least 5, at most 25;
+models read no background frames by default (``--background none``): each frame's scene
+comes from the frame itself (``RGBDConfig.side_scene``), which holds for a camera that
+moves and a scene never seen empty. For a static camera, ``--background auto`` takes the
+median of the frames, among up to 150 evenly spaced ones, with the least foreground in
+front of the farthest surface each pixel shows in a fifth of them (a share at most twice
+the quietest's plus 1 % of the frame; at least 5, at most 25;
 :func:`cpf_jax.kernels.background.quiet_frames`), so that the empty frames of a
-recording whose people come and go make the model; ``--background learn`` reads no
-background frames, and the filter learns the scene from the tracked frames
-(``RGBDConfig.learn_scene``).
+recording whose people come and go make the model.
 
 ``--points`` adds layer 2 (``cpf_jax.cascade``): points on the body (``joints``:
 a synthetic scenario's head, hands and feet; ``auto``: head, hands and feet found

@@ -15,6 +15,7 @@ import numpy as np
 from cpf_jax.cli.options import (
     AUTO_BACKGROUND_FRAMES,
     AUTO_INIT_MIN_CONFIDENCE,
+    FRAMELESS,
     QUIET_STRIDE,
     UsageError,
     check_box,
@@ -51,10 +52,12 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     # Depth is read by the RGB-D models, the cascade and --init auto's person finder.
     uses_depth = args.model != "rgb" or args.points is not None or auto
     register = _registrar(calib, uses_depth=uses_depth)
-    # A background model: the RGB-D models' foreground (unless they learn the scene from
-    # the tracked frames, --background learn), and --init auto's person finder.
-    learn = args.background == "learn"
-    need_bg = (args.model != "rgb" and not learn) or auto
+    # A background model: the RGB-D models' foreground (unless each frame is its own
+    # scene, --background none), --init auto's person finder and --multi's births (with
+    # --background none, the quiet frames of --background auto).
+    multi = getattr(args, "multi", False)
+    frameless = args.background == FRAMELESS and not multi
+    need_bg = (args.model != "rgb" and not frameless) or auto or multi
     note = None
     if live:
         start, box, bg_frames, frames = _open_live(args, source, register, need_bg, auto)
@@ -71,16 +74,20 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
         start, first = next(frames)
     except StopIteration:
         raise UsageError(f"{source.describe()}: no frame to track") from None
-    if box is not None or not getattr(args, "multi", False):
+    if box is not None or not multi:
         check_box(box, source.size, source.describe())
     if not live and source.gt_boxes is not None:
         check_groundtruth(source.gt_boxes, source.visible, source.size, source.describe())
     _check_colour(source, start, first)
     _check_depth(args, source, start, first)
     if uses_depth:
-        _check_alignment([first, *(bg_frames or [])[:4]], source.describe())
+        more = (bg_frames or [])[:4]
+        if not more and not live:  # no background frames read: four spread over the recording
+            name = source.describe()
+            more = [register(source.read(i), name) for i in parse_background("4", len(source))]
+        _check_alignment([first, *more], source.describe())
     frames = itertools.chain([(start, first)], frames)
-    return Inputs(start, box, frames, first, None if learn else scene, calib, note, n_frames)
+    return Inputs(start, box, frames, first, None if frameless else scene, calib, note, n_frames)
 
 
 def _check_depth(args: argparse.Namespace, source, start: int, first) -> None:
@@ -182,8 +189,8 @@ def _open_recording(args, source, register, need_bg: bool, auto: bool):
     start, box = _start_and_box(args, source, n_frames, auto)
     bg_frames, note = None, None
     if need_bg:
-        # With --background learn only --init auto's finder needs one: the quiet frames.
-        mode = "auto" if args.background == "learn" else args.background
+        # With --background none only --init auto's finder needs one: the quiet frames.
+        mode = "auto" if args.background == FRAMELESS else args.background
         if mode == "empty":
             empty = source.empty_background()
             if empty is None:
@@ -273,7 +280,7 @@ def _open_live(args: argparse.Namespace, source, register, need_bg: bool, auto: 
             f"{where}: a live source has no ground truth; give --init x,y,w,h or --init auto"
         )
     box = None if auto or multi else parse_box(args.init)
-    mode = "auto" if args.background == "learn" else args.background  # learn: the finder's
+    mode = "auto" if args.background == FRAMELESS else args.background  # the finder's
     bg = parse_live_background(mode) if need_bg else (0, 0)
     start = bg[1] if args.start is None else args.start
     if start < bg[1]:

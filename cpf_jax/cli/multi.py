@@ -43,11 +43,6 @@ def check_multi_options(args: argparse.Namespace) -> None:
             f"{', '.join(clash)} do not go with --multi: people are found by the detector; "
             "write the boxes with --mot"
         )
-    if args.background == "learn":
-        raise UsageError(
-            "--multi finds people against a background model: give --background auto, N, "
-            "A:B or empty, not learn"
-        )
     if args.max_people < 1:
         raise UsageError(f"--max-people must be >= 1, got {args.max_people}")
     if args.model == "rgb":
@@ -66,7 +61,7 @@ def _model(args: argparse.Namespace, options, frame_hw: tuple[int, int]):
         hierarchical=not args.no_hierarchical,
         resampler=args.resampler,
         body_term=not args.no_body_term,
-        learn_scene=False,
+        side_scene=None,
         **config_kw,
     )
     config = MultiConfig(rgbd=rgbd, max_targets=args.max_people)

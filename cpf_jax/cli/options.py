@@ -16,6 +16,7 @@ __all__ = [
     "AUTO_CANDIDATES",
     "AUTO_INIT_MIN_CONFIDENCE",
     "AUTO_POINTS_MIN_CONFIDENCE",
+    "FRAMELESS",
     "JOINTS",
     "JOINT_DEPTH_OFFSET_MM",
     "UsageError",
@@ -117,6 +118,9 @@ def check_box(box: np.ndarray, size: tuple[int, int], where: str) -> None:
 # --background auto: the AUTO_BACKGROUND_FRAMES emptiest of up to AUTO_CANDIDATES evenly
 # spaced frames (a live stream: its first AUTO_BACKGROUND_FRAMES).
 AUTO_BACKGROUND_FRAMES = 25
+# --background none reads no background frames: the RGB-D filter takes each frame's scene
+# from the frame itself (rgbd.RGBDConfig.side_scene).
+FRAMELESS = "none"
 AUTO_CANDIDATES = 150
 QUIET_STRIDE = 4  # pixel lattice of the candidates' foreground shares
 # --init auto and --points auto start only on finds at least this sure (detect,
@@ -144,7 +148,7 @@ def parse_background(text: str, n_frames: int) -> list[int]:
         frames = None
     if not frames:
         raise UsageError(
-            f"--background expects auto, empty, learn, N >= 1 or A:B with frames inside "
+            f"--background expects none, auto, empty, N >= 1 or A:B with frames inside "
             f"0..{n_frames - 1}, got {text!r}"
         )
     return frames
@@ -256,12 +260,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--background",
-        default="auto",
-        help="background frames for the RGB-D models: 'auto' (default: up to 25 frames with "
-        "the least foreground among up to 150 evenly spaced ones; a live stream's first 25), "
-        "N (evenly spaced over the recording; a live stream's first N), A:B (frames A..B-1, "
-        "0-based), 'empty' (a synthetic scenario's empty room) or 'learn' (none: the scene "
-        "is learnt from the tracked frames, around and behind the target)",
+        default=FRAMELESS,
+        help="background frames for the RGB-D models: 'none' (default: each frame's scene "
+        "from the frame itself, for a camera that moves or a scene never seen empty), 'auto' "
+        "(a static camera: up to 25 frames with the least foreground among up to 150 evenly "
+        "spaced ones; a live stream's first 25), N (evenly spaced over the recording; a live "
+        "stream's first N), A:B (frames A..B-1, 0-based) or 'empty' (a synthetic scenario's "
+        "empty room)",
     )
     p.add_argument(
         "--start",

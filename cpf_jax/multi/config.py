@@ -26,14 +26,15 @@ SLOT_LOOPS = ("map", "vmap")
 class MultiConfig:
     """Static, hashable settings of the multi-person tracker (``cpf_jax.multi``).
 
-    ``rgbd`` is every slot's RGB-D box filter (``learn_scene`` must be off: the tracker
-    finds people against the background model of ``Context.background``); ``max_targets``
+    ``rgbd`` is every slot's RGB-D box filter (the tracker finds people against the
+    background model of ``Context.background``, so the frame's own scene behind unseen
+    pixels, ``side_scene``, is off by default); ``max_targets``
     the number of slots (people tracked at once, confirmed or not, and those kept for
     re-identification); ``max_births`` how many detections a frame may start;
     ``detect`` the person detector's thresholds on the foreground no target claims.
     """
 
-    rgbd: RGBDConfig = RGBDConfig(learn_scene=False, n_particles=200)
+    rgbd: RGBDConfig = RGBDConfig(side_scene=None, n_particles=200)
     max_targets: int = 6
     max_births: int = 3
     detect: DetectConfig = DetectConfig()
@@ -46,11 +47,6 @@ class MultiConfig:
             raise ValueError(f"max_births must be >= 1, got {self.max_births}")
         if self.slot_loop not in SLOT_LOOPS:
             raise ValueError(f"slot_loop must be one of {SLOT_LOOPS}, got {self.slot_loop!r}")
-        if self.rgbd.learn_scene:
-            raise ValueError(
-                "MultiConfig.rgbd.learn_scene must be False: the multi-person tracker finds "
-                "people against Context.background (give it a background model)"
-            )
 
     def with_window(
         self, box_wh: tuple[float, float], frame_hw: tuple[int, int], growth: float = 1.5

@@ -40,13 +40,13 @@ class RGBDConfig:
     aspect_prior: bool = True
     template_update: bool = True  # eq. 7-8 in the cells voted visible
     background_update: bool = False  # running update of the background on its own pixels
-    # Without a background model (``context.background`` None): learn one from the frames.
-    # The first frame is the scene but for the pixels within ``behind_mm`` of the target's
-    # depth in its box grown by ``scene_margin``; each of those is learnt once it shows
-    # outside the estimate grown as much, and until then is foreground when nearer than
-    # ``behind_mm`` behind the target's depth (False: every pixel is foreground).
-    learn_scene: bool = True
-    scene_margin: float = 0.1
+    # Without a background model (``context.background`` None) every pixel is unseen, and
+    # each frame's scene is the nearer of a plane ``behind_mm`` behind the target's depth
+    # (what lies farther is neither the target nor what hides it) and the frame's own scene
+    # along each row (``kernels.background.side_scene``) at these multiples of the
+    # estimate's width to either side; nothing is kept from frame to frame, so a camera
+    # may move. None: every pixel is foreground.
+    side_scene: tuple[float, ...] | None = (0.75, 1.5)
     behind_mm: float = 500.0
     flag_transition: str = "auto"
     max_full_cells: int = 6  # "auto": the full 2^C matrix up to this many cells
@@ -91,6 +91,10 @@ class RGBDConfig:
             (self.variant in VARIANTS, f"variant must be one of {VARIANTS}, got {self.variant!r}"),
             (self.n_particles >= 1, f"n_particles must be >= 1, got {self.n_particles}"),
             (self.grid >= 1, f"grid must be >= 1, got {self.grid}"),
+            (
+                self.side_scene is None or (len(self.side_scene) > 0 and min(self.side_scene) > 0),
+                f"side_scene must be None or positive widths, got {self.side_scene}",
+            ),
             (self.model in MODELS, f"model must be one of {MODELS}, got {self.model!r}"),
             (
                 self.resampler in rs.SCHEMES,

@@ -41,10 +41,8 @@ from cpf_jax.kernels import resample as rs
 from cpf_jax.kernels.background import (
     Background,
     behind_plane,
-    box_mask,
-    learn_unseen,
     masked_quantile,
-    scene_outside,
+    side_scene,
     update_background,
 )
 from cpf_jax.likelihood import aspect_log_prior
@@ -78,6 +76,7 @@ __all__ = [
     "RGBDState",
     "RGBDInfo",
     "rgbd_init",
+    "unseen_scene",
     "score_particles",
     "rgbd_step",
     "build_rgbd_filter",
@@ -124,8 +123,8 @@ def rgbd_init(
     box: Array,
     context: Context | None = None,
 ) -> RGBDState:
-    """Templates from the initial box against ``context.background`` (None: the scene
-    learnt from the frames, ``config.learn_scene``), ``n_particles`` copies of the box, the
+    """Templates from the initial box against ``context.background`` (None: the frame's own
+    scene, ``config.side_scene``), ``n_particles`` copies of the box, the
     Beta means moved towards its foreground fill (``beta.py``)."""
     check_frame(frame, needs_depth=True)
     box, _ = usable_box(box, frame)  # an unusable box under jit: the whole frame
@@ -134,11 +133,10 @@ def rgbd_init(
     bg = as_background(background, frame)
     obs = observe(config, params.foreground, frame, bg)
     _, med, _ = cell_statistics(config, obs, box)
-    if background is None and config.learn_scene:
-        # The box's depths against no background give the target's depth; the frame is
-        # the scene but for the pixels at that depth in and around the box.
-        bg = scene_outside(frame.colour, frame.depth, _near_target(config, frame, box, med))
-        obs = observe(config, params.foreground, frame, _behind_target(config, bg, med))
+    if background is None and config.side_scene is not None:
+        # The box's depths against no background give the target's depth, and with it the
+        # frame's scene.
+        obs = observe(config, params.foreground, frame, unseen_scene(config, bg, frame, box, med))
         _, med, _ = cell_statistics(config, obs, box)
     particles = at_rest(box, config.n_particles)
     if config.init_spread > 0:
@@ -148,7 +146,7 @@ def rgbd_init(
     c = config.n_cells
     fill_shift = (
         jnp.zeros((), jnp.float32)
-        if background is None and not config.learn_scene
+        if background is None and config.side_scene is None
         else beta_fill_shift(params.beta, initial_fill(obs.foreground, box))
     )
     return RGBDState(
@@ -169,29 +167,20 @@ def target_depth(medians: Array) -> Array:
     return masked_quantile(medians, medians > 0, 0.5)
 
 
-def _behind_target(config: RGBDConfig, background: Background, medians: Array) -> Background:
-    """``background`` with its unseen pixels ``config.behind_mm`` behind the target's
-    depth (unchanged when the target's depth is unknown)."""
-    z = target_depth(medians)
-    return behind_plane(background, jnp.where(z > 0, z + config.behind_mm, 0.0))
-
-
-def _near_target(config: RGBDConfig, frame: Frame, box: Array, medians: Array) -> Array:
-    """``[H, W] bool``: the pixels of ``box`` grown by ``scene_margin`` within
-    ``behind_mm`` of the target's depth or without depth: the target may be there."""
-    depth = frame.depth.astype(jnp.float32)
-    z = target_depth(medians)
-    near = (jnp.abs(depth - z) <= config.behind_mm) | (depth <= 0) | (z <= 0)
-    return box_mask(depth.shape, box, config.scene_margin) & near
-
-
-def _learn_scene(
-    config: RGBDConfig, background: Background, frame: Frame, est: Array
+def unseen_scene(
+    config: RGBDConfig, background: Background, frame: Frame, est: Array, medians: Array
 ) -> Background:
-    """The unseen pixels that show outside the estimate grown by ``scene_margin``, learnt
-    from the frame."""
-    keep_out = box_mask(frame.depth.shape, est, config.scene_margin)
-    return learn_unseen(background, frame.colour, frame.depth, keep_out)
+    """``background`` with a scene behind its unseen pixels: the nearer of the plane
+    ``config.behind_mm`` behind the target's depth (cell ``medians [C]``) and the frame's
+    own scene along the row (``config.side_scene`` times the estimate's width ``est[2]`` to
+    either side); either alone where the other is unknown."""
+    z = target_depth(medians)
+    plane = jnp.where(z > 0, z + config.behind_mm, 0.0)
+    sides = side_scene(frame.depth, jnp.asarray(config.side_scene, jnp.float32) * est[2])
+    known = (sides > 0) & (plane > 0)
+    return behind_plane(
+        background, jnp.where(known, jnp.minimum(sides, plane), jnp.maximum(sides, plane))
+    )
 
 
 def score_particles(
@@ -227,7 +216,7 @@ def _learn(
     held: Array,
 ):
     """The templates' updates: cell colours and depths where voted visible (eqs. 7-8), the
-    occluder's depth, the body, and the background on its own pixels."""
+    occluder's depth, the body, and a given background on its own pixels."""
     est_hist, est_med, _ = cell_statistics(config, obs, est)
     ok = (~voted) & (~lost)
     occluded_frames = state.occlusion.occluded_frames
@@ -238,8 +227,6 @@ def _learn(
     colour = cell_colour_update(config, params.colour, state.colour, est_hist, ok)
     body = body_template_update(config, params.body, state.body, obs, report, vote, lost)
     background = state.background
-    if config.learn_scene:
-        background = _learn_scene(config, background, frame, est)
     if config.background_update:
         background = update_background(
             background,
@@ -260,8 +247,8 @@ def rgbd_step(
     k_det = jax.random.fold_in(key, 6)
     state = state._replace(depth=depth_template_predict(config, state.depth))
     scene = state.background
-    if config.learn_scene:
-        scene = _behind_target(config, scene, state.depth.depth)
+    if config.side_scene is not None:
+        scene = unseen_scene(config, scene, frame, state.estimate, state.depth.depth)
     obs = observe(config, params.foreground, frame, scene)
     proposal = propose(config, params, (k_prop, k_spread, k_det, k_rec), state, obs, frame.depth)
     log_lik, post, terms = score_particles(config, params, k_flag, state, obs, proposal)

@@ -61,7 +61,7 @@ def observe(
         depth_rel=params.depth_rel,
         colour_threshold=params.colour,
     )
-    if config.learn_scene:
+    if config.side_scene is not None:
         # An unseen pixel without depth is nobody's: neither depth nor colour can tell.
         fg = fg & ~((background.colour[..., 0] < 0) & (frame.depth == 0))
     off = n_bins_of(config.bins) if config.background_bin else -1
