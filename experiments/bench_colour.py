@@ -15,7 +15,8 @@ particle's box parts and surround ring from one windowed integral histogram, the
 term's 7 x 3 cell means from a luminance summed-area table, log-likelihood, ESS,
 estimate, the estimate's own histogram, template update, systematic resampling. It is
 timed with the library defaults, without the layout term and template update
-(``ColourConfig.histogram_only``), with the gradient layout, with a finer 12 x 3 layout
+(``ColourConfig.histogram_only``), without following the camera (``camera_motion=None``:
+what that stage costs), with the gradient layout, with a finer 12 x 3 layout
 grid, and with the same code configured as the thesis's model (one 8x8 H-S histogram per
 box, the work per particle of the OpenCV loop; the 8-tuple AR1 with motion-guided
 sampling). Each variant's share of timed steps on the histogram window is recorded
@@ -148,6 +149,7 @@ VARIANT_KEYS = {
     "histogram_only": "histogram_only",
     "gradient": "gradient_layout",
     "layout_12x3": "layout_12x3",
+    "no_camera": "no_camera",
 }
 
 
@@ -223,6 +225,7 @@ VARIANT_LABELS = {
     "histogram_only": "histogram only (no layout, no update)",
     "gradient": f"gradient layout {GRID}",
     "layout_12x3": "layout 12x3",
+    "no_camera": "without following the camera",
 }
 VARIANTS = {
     "default": {},
@@ -248,6 +251,9 @@ VARIANTS = {
     "gradient": {"layout_feature": "gradient"},
     # A finer layout grid than the default (ColourConfig.layout): what it costs.
     "layout_12x3": {"layout": (12, 3)},
+    # The default without its camera stage (ColourConfig.camera_motion): what following
+    # the camera costs.
+    "no_camera": {"camera_motion": None},
 }
 
 

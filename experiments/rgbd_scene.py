@@ -62,7 +62,7 @@ WALK_SEEDS = {"train": (100, 101, 102), "eval": (0, 1, 2)}
 # The walking scenarios (the target: SR >= 95 % on each) and a walker passing furniture.
 SCENARIOS = (*WALKING, "distractor_pass")
 WALK_MODES = ("empty room", "own scene", "every pixel foreground")
-RANDOM_SEEDS = {"train": TRAIN_SEEDS[:40], "eval": EVAL_SEEDS}
+RANDOM_SEEDS = {"train": TRAIN_SEEDS[:20], "eval": EVAL_SEEDS}
 RANDOM_MODES = ("own scene", "every pixel foreground")
 # A walker farther than the sensor's range has no depth: an RGB-D model cannot see him.
 MIN_DEPTH_SHARE = 0.5
