@@ -14,10 +14,10 @@
 
 and writes ``experiments/results/multi_target.json`` (``{scene: {mota, motp, idf1, hota,
 id_switches}}``, means over the seeds, id switches summed), ``multi_target.md``,
-``multi_target_runs.json`` (every run, the IST target check and the cost) and a contact
+``multi_target_runs.json`` (every run and the IST target check) and a contact
 sheet per scene (``multi_target_<scene>.png``: ground truth white, each identity in its
-colour). It also times the step with four people against one target (the same frame size
-and particles per target, in one process, interleaved).
+colour). The step's cost with four people against one target is
+``experiments/bench_multi.py``'s.
 
 ``--train`` scores the variants of ``TRAIN_VARIANTS`` on the training seeds
 ``TRAIN_SEEDS`` instead (``multi_target_train.md``): how the defaults were chosen.
@@ -82,6 +82,11 @@ TRAIN_VARIANTS = {
     "claim margin 0.1": {"claim.margin": 0.1},
     "verify always": {"life.verify_after": 0.0},
     "appearance 0.4": {"reid.appearance": 0.4},
+    "reid depth 150 mm/frame": {"reid.depth_speed": 150.0},
+    "verify always, reid depth 150 mm/frame": {
+        "life.verify_after": 0.0,
+        "reid.depth_speed": 150.0,
+    },
 }
 
 
@@ -289,78 +294,6 @@ def ist_run(keep=None) -> tuple[dict | None, dict | None]:
     return out, rows
 
 
-# ---------------------------------------------------------------------------------- cost
-
-
-def cost(repeats: int = 3) -> dict:
-    """Step time of the tracker (four slots) on ``group_enter`` frames with four people
-    confirmed,
-    against the single-target RGB-D filter on one walker, same frame size and particles
-    per target, interleaved in one process; medians over ``repeats`` passes of 10 steps."""
-    from cpf_jax.rgbd import build_rgbd_filter, default_rgbd_params
-    from cpf_jax.synthetic import make_sequence
-
-    seq = make_people_sequence("group_enter", 0)
-    config = _config(seq.colour.shape[1:3], max_targets=4)
-    params = _params(config)
-    init, step = _compiled(config)
-    bg = _background(seq)
-    key = jax.random.PRNGKey(KEY)
-    f0 = Frame(jnp.asarray(seq.colour[0]), jnp.asarray(seq.depth[0]))
-    state = init(params, key, f0, None, Context(background=bg))
-    # Run until the four people are tracked, then time the next ten frames from there.
-    multi_frames, live, t = [], 0, 1
-    while len(multi_frames) < 10 and t < len(seq.colour):
-        f = Frame(jnp.asarray(seq.colour[t]), jnp.asarray(seq.depth[t]))
-        if live < 4:
-            state, info = step(params, key, state, f)
-            live = int(np.sum(np.asarray(info.status) == 2))
-        else:
-            multi_frames.append(f)
-        t += 1
-    one = make_sequence("walk_across_medium", 0, n_frames=12)
-    single = config.rgbd
-    filt = build_rgbd_filter(single)
-    sp = default_rgbd_params(single)
-    sstep = jax.jit(filt.step)
-    f0 = Frame(jnp.asarray(one.colour[0]), jnp.asarray(one.depth[0]))
-    sbg = _background(one)
-    sstate = jax.jit(filt.init)(sp, key, f0, jnp.asarray(one.boxes[0]), Context(background=sbg))
-    single_frames = [
-        Frame(jnp.asarray(one.colour[t]), jnp.asarray(one.depth[t])) for t in range(1, 11)
-    ]
-
-    def time_multi():
-        s, out = state, []
-        for f in multi_frames:
-            t0 = time.perf_counter()
-            s, _ = jax.block_until_ready(step(params, key, s, f))
-            out.append(time.perf_counter() - t0)
-        return out
-
-    def time_single():
-        s, out = sstate, []
-        for f in single_frames:
-            t0 = time.perf_counter()
-            s, _ = jax.block_until_ready(sstep(sp, key, s, f))
-            out.append(time.perf_counter() - t0)
-        return out
-
-    time_multi(), time_single()  # compile and warm up
-    m, s1 = [], []
-    for _ in range(repeats):
-        m += time_multi()
-        s1 += time_single()
-    out = {
-        "confirmed": live,
-        "multi_4_slots_ms": round(1000 * float(np.median(m)), 1),
-        "single_target_ms": round(1000 * float(np.median(s1)), 1),
-    }
-    out["ratio"] = round(out["multi_4_slots_ms"] / out["single_target_ms"], 2)
-    print(f"  cost: {out}", flush=True)
-    return out
-
-
 # ------------------------------------------------------------------------------ figures
 
 
@@ -400,7 +333,7 @@ def contact_sheet(colour, gt, rows, path: Path, n: int = 8, scale: float = 0.5) 
     cv2.imwrite(str(path), np.concatenate([top, bottom], axis=0), [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 
-def markdown(table: dict, ist: dict | None, cost_out: dict | None, seconds: float) -> str:
+def markdown(table: dict, ist: dict | None, seconds: float) -> str:
     lines = [
         "# Several people at once (issue 56)",
         "",
@@ -429,16 +362,11 @@ def markdown(table: dict, ist: dict | None, cost_out: dict | None, seconds: floa
             f"elsewhere in {tgt['elsewhere']}; the single-target RGB-D filter started on him in "
             f"frame 52 covers him in {one['held']} and is elsewhere in {one['elsewhere']}.",
         ]
-    if cost_out is not None:
-        lines += [
-            "",
-            f"Cost: a step with {cost_out['confirmed']} people tracked (4 slots) takes "
-            f"{cost_out['multi_4_slots_ms']} ms against "
-            f"{cost_out['single_target_ms']} ms for the single-target RGB-D filter on one walker "
-            f"(512 x 424, {MultiConfig().rgbd.n_particles} particles per target): "
-            f"{cost_out['ratio']}x.",
-        ]
-    lines += ["", "Contact sheets: `multi_target_<scene>.png` (ground truth white)."]
+    lines += [
+        "",
+        "Contact sheets: `multi_target_<scene>.png` (ground truth white). The step's cost "
+        "with four people: `bench_multi.md`.",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -477,7 +405,6 @@ def main() -> None:
     ap.add_argument("--train", action="store_true", help="score TRAIN_VARIANTS on TRAIN_SEEDS")
     ap.add_argument("--variants", default=None, help="--train: these of TRAIN_VARIANTS only")
     ap.add_argument("--skip-ist", action="store_true")
-    ap.add_argument("--skip-cost", action="store_true")
     ap.add_argument(
         "--scenes",
         default=",".join(SCENES),
@@ -501,13 +428,12 @@ def main() -> None:
             table["ist_images1"] = {
                 k: ist[k] for k in ("mota", "motp", "idf1", "hota", "id_switches")
             }
-    cost_out = None if args.skip_cost else cost()
     for name, (colour, gt, rows) in keep.items():
         contact_sheet(colour, gt, rows, RESULTS / f"multi_target_{name}.png")
     (RESULTS / "multi_target.json").write_text(json.dumps(table, indent=1) + "\n")
-    detail = {"synthetic": runs, "ist_images1": ist, "cost": cost_out}
+    detail = {"synthetic": runs, "ist_images1": ist}
     (RESULTS / "multi_target_runs.json").write_text(json.dumps(detail, indent=1) + "\n")
-    md = markdown(table, ist, cost_out, time.time() - t0)
+    md = markdown(table, ist, time.time() - t0)
     (RESULTS / "multi_target.md").write_text(md)
     print(md)
 
