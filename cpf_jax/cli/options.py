@@ -361,7 +361,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--multi",
         action="store_true",
         help="track every person (cpf_jax.multi): people are found by the person detector "
-        "against the --background model, confirmed, kept through crossings and re-entries "
+        "against the --background model (none, the default, means auto here: a static "
+        "camera's emptiest frames), confirmed, kept through crossings and re-entries "
         "under one identity each; an RGB-D model (grid-occlusion unless --model names one); "
         "no --init",
     )
