@@ -353,3 +353,30 @@ def test_every_parameter_has_its_prop_beside_it():
         jax.tree_util.tree_map(lambda p: 0, props, is_leaf=lambda x: hasattr(x, "constraint")),
         is_leaf=lambda x: x is None,
     )
+
+
+def test_reanchor_takes_the_rest_of_a_person_within_the_grown_box():
+    # A target 35 px wide found on part of a person at 3 m; the rest of him is a sliver
+    # 20 px wide beside the box at his depth, and a second sliver stands at 4 m.
+    box = np.array([[100, 50, 35, 150]], np.float32)
+    z, gate, found = np.array([3000.0], np.float32), np.array([300.0], np.float32), np.array([True])
+    cand = births.Candidates(
+        box=np.array([[135, 50, 20, 150], [135, 50, 20, 150]], np.float32),
+        confidence=np.array([0.9, 0.9], np.float32),
+        depth=np.array([3000.0, 4000.0], np.float32),
+    )
+    ok = np.array([True, True])
+
+    def widen(margin):
+        grown = claim.grow(box, np.float32(margin))
+        return births.reanchor(cand, ok, box, grown, z, gate, found, 0.5, np.float32(1.3))
+
+    grows, union = widen(0.5)  # columns 82.5-152.5 hold 17.5 of the sliver's 20
+    assert bool(grows[0])
+    np.testing.assert_allclose(np.asarray(union[0]), [100, 50, 55, 150])
+    grows, _ = widen(0.2)  # columns 93-142: 7 of 20, under half
+    assert not bool(grows[0])
+    far = births.Candidates(cand.box[1:], cand.confidence[1:], cand.depth[1:])
+    grown = claim.grow(box, np.float32(0.5))
+    grows, _ = births.reanchor(far, ok[1:], box, grown, z, gate, found, 0.5, np.float32(1.3))
+    assert not bool(grows[0]), "a blob at another depth is someone else"

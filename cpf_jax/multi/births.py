@@ -9,9 +9,10 @@ as fixed-size arrays. A blob starts a tentative target when its confidence
 (``detect.person_confidence``) reaches ``life.birth_confidence``, it is at least
 ``life.birth_aspect`` as wide as tall (narrower: a limb, or a sliver of someone at the
 frame's edge) and it is not part of a found target (``part_of_found``); a blob that is part
-of one and makes its box larger starts that target again on the union (``reanchor``: he
-walked into view legs first). Each new target takes a free slot, or the slot of the lost
-target closest to being forgotten when none is free.
+of one (within its box grown by ``claim.reanchor_margin``, at least
+``claim.reanchor_aspect`` as wide as tall) and makes its box larger starts that target
+again on the union (``reanchor``: he walked into view legs first). Each new target takes a
+free slot, or the slot of the lost target closest to being forgotten when none is free.
 """
 
 from __future__ import annotations

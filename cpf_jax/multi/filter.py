@@ -176,12 +176,21 @@ def add_births(
     cand = births.detect_candidates(
         config.detect, config.max_births, obs.foreground & ~mine, frame.depth
     )
-    ok = (cand.confidence >= params.life.birth_confidence) & (cand.box[:, 2] >= 1.0)
-    ok = ok & (cand.box[:, 2] >= params.life.birth_aspect * cand.box[:, 3])
+    sure = (cand.confidence >= params.life.birth_confidence) & (cand.box[:, 2] >= 1.0)
+    aspect = cand.box[:, 2] / jnp.maximum(cand.box[:, 3], 1.0)
     share = params.claim.duplicate_overlap
     widen, wider = births.reanchor(
-        cand, ok, boxes, grown, seen_z, seen_gate, tracked, share, params.claim.reanchor_growth
+        cand,
+        sure & (aspect >= params.claim.reanchor_aspect),
+        boxes,
+        claim.grow(boxes, params.claim.reanchor_margin),
+        seen_z,
+        seen_gate,
+        tracked,
+        share,
+        params.claim.reanchor_growth,
     )
+    ok = sure & (aspect >= params.life.birth_aspect)
     ok = ok & ~births.part_of_found(cand, grown, seen_z, seen_gate, tracked, share)
     take = births.allocate(ok, tr.status, tr.missed, params.life.forget_after)
     started = take >= 0

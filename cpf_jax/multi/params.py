@@ -33,6 +33,8 @@ class ClaimParams(NamedTuple):
     fake_margins: Array  # claimed pixels are an occluder this many occluder margins nearer
     duplicate_overlap: Array  # boxes at one depth sharing this share of columns are one person
     reanchor_growth: Array  # a target grows onto the rest of its person when this much larger
+    reanchor_margin: Array  # ... a blob within its box grown by this share per side ...
+    reanchor_aspect: Array  # ... at least this wide / tall (narrower: a limb, a sliver)
 
 
 class LifeParams(NamedTuple):
@@ -75,6 +77,8 @@ TRACK_SPEC = (
         fake_margins=P(2.0, "softplus", False),
         duplicate_overlap=P(0.5, "sigmoid", False),
         reanchor_growth=P(1.3, "softplus", False),
+        reanchor_margin=P(0.2, "softplus", False),
+        reanchor_aspect=P(0.2, "softplus", False),
     ),
     LifeParams(
         birth_confidence=P(0.3, "sigmoid", False),
