@@ -39,7 +39,8 @@ a new viewer (``--spawn``) or a running one (``--connect URL``, checked before t
 a viewer that goes away during the run fails it with exit 2 once the CSV, ``.rrd``, plot and
 summary are written).
 ``--multi`` tracks every person instead of one (``cpf_jax.multi``, :mod:`cpf_jax.cli.multi`):
-no ``--init``; ``--mot FILE`` writes MOTChallenge lines as it goes, ``--mot-gt FILE``
+no ``--init``, and a background model (``--background none`` takes ``auto``'s quiet
+frames there); ``--mot FILE`` writes MOTChallenge lines as it goes, ``--mot-gt FILE``
 scores the run, and the Rerun log shows each identity in its own colour with its births,
 losses and deaths as text events.
 ``--plot FILE.png`` draws the run (IoU and ESS / N per frame, the success plot, the body
