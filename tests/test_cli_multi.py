@@ -84,3 +84,25 @@ def test_multi_writes_mot_lines_and_scores_them(folder, tmp_path, capsys):
 def test_multi_option_errors(folder, capsys, extra, message):
     assert main([str(folder), *extra]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_multi_reads_the_quiet_frames_under_the_default_background(folder):
+    # --background none (each frame its own scene) is the single-person default; --multi's
+    # births need a background model, so it takes --background auto's quiet frames.
+    from cpf_jax.cli.inputs import open_inputs
+    from cpf_jax.cli.multi import check_multi_options
+    from cpf_jax.cli.options import FRAMELESS, build_parser
+    from cpf_jax.io import open_source
+
+    args = build_parser().parse_args([str(folder), "--multi", "--no-progress"])
+    assert args.background == FRAMELESS
+    check_multi_options(args)
+    with open_source(folder) as source:
+        inputs = open_inputs(args, source)
+        assert inputs.background is not None
+        assert inputs.start == 0
+    single = build_parser().parse_args(
+        [str(folder), "--model", "grid-occlusion", "--init", "1,1,9,9"]
+    )
+    with open_source(folder) as source:
+        assert open_inputs(single, source).background is None
