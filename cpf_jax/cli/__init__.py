@@ -38,6 +38,11 @@ however it ends. The Rerun log goes to ``--rrd FILE``,
 a new viewer (``--spawn``) or a running one (``--connect URL``, checked before tracking;
 a viewer that goes away during the run fails it with exit 2 once the CSV, ``.rrd``, plot and
 summary are written).
+``--multi`` tracks every person instead of one (``cpf_jax.multi``, :mod:`cpf_jax.cli.multi`):
+no ``--init``, and a background model (``--background none`` takes ``auto``'s quiet
+frames there); ``--mot FILE`` writes MOTChallenge lines as it goes, ``--mot-gt FILE``
+scores the run, and the Rerun log shows each identity in its own colour with its births,
+losses and deaths as text events.
 ``--plot FILE.png`` draws the run (IoU and ESS / N per frame, the success plot, the body
 points' 3D errors when they are scored) at its end, or when it is interrupted.
 
@@ -178,6 +183,12 @@ def _run(args: argparse.Namespace) -> int:
         except OSError as e:
             raise UsageError(f"--plot {args.plot}: cannot create its folder ({e})") from None
 
+    if args.multi:
+        from cpf_jax.cli.multi import check_multi_options
+
+        check_multi_options(args)
+    elif args.mot or args.mot_gt:
+        raise UsageError("--mot and --mot-gt go with --multi")
     options = model_options(args)  # a bad option fails before any frame is read
 
     from cpf_jax.io import open_source
@@ -189,6 +200,10 @@ def _run(args: argparse.Namespace) -> int:
 
 def _track(args: argparse.Namespace, source, options) -> int:
     """Inputs, model, the tracking loop, then the plot and the summary."""
+    if args.multi:
+        from cpf_jax.cli.multi import track_multi
+
+        return track_multi(args, source, options)
     inputs = open_inputs(args, source)
     model = build_model(args, source, inputs, options)
     results, viewer_error = track(args, source, inputs, model)
