@@ -200,6 +200,18 @@ def _heading(part: dict) -> str:
     return f"{part['host']}, {part['date']}, N = {part['particles']}."
 
 
+def _mode_table(first: str, counts: list[str], modes: tuple, table: dict) -> list[str]:
+    """Markdown rows of ``table`` (``{row name: {count: n, mode: {"sr", "auc"}}}``): the
+    row's name, its ``counts`` columns, then SR / AUC per mode, and a blank line."""
+    md = ["| " + " | ".join([first, *counts, *modes]) + " |"]
+    md += ["|---|" + "---:|" * (len(counts) + len(modes))]
+    for name, row in table.items():
+        cells = [str(row[c]) for c in counts]
+        cells += [f"{row[m]['sr']:.1f} / {row[m]['auc']:.1f}" for m in modes]
+        md.append(f"| {name} | " + " | ".join(cells) + " |")
+    return [*md, ""]
+
+
 def markdown(parts: dict) -> str:
     """The Markdown tables of the parts present in ``parts`` (``{name: {host, date,
     particles, result}}``)."""
@@ -219,12 +231,7 @@ def markdown(parts: dict) -> str:
         for split, table in walks["result"].items():
             seeds = WALK_SEEDS[split]
             md += [f"Seeds {', '.join(map(str, seeds))} ({split}), mean over seeds:", ""]
-            md += ["| scenario | " + " | ".join(WALK_MODES) + " |"]
-            md += ["|---|" + "---:|" * len(WALK_MODES)]
-            for name, row in table.items():
-                cells = [f"{row[m]['sr']:.1f} / {row[m]['auc']:.1f}" for m in WALK_MODES]
-                md.append(f"| {name} | " + " | ".join(cells) + " |")
-            md.append("")
+            md += _mode_table("scenario", [], WALK_MODES, table)
     if "random" in parts:
         random = parts["random"]
         md += ["## Randomised scenes with depth, by camera motion", "", _heading(random), ""]
@@ -236,12 +243,7 @@ def markdown(parts: dict) -> str:
                 "pixels, then the others (farther than the sensor's range) together:",
                 "",
             ]
-            md += ["| camera | scenes | " + " | ".join(RANDOM_MODES) + " |"]
-            md += ["|---|---:|" + "---:|" * len(RANDOM_MODES)]
-            for camera, row in table.items():
-                cells = [f"{row[m]['sr']:.1f} / {row[m]['auc']:.1f}" for m in RANDOM_MODES]
-                md.append(f"| {camera} | {row['scenes']} | " + " | ".join(cells) + " |")
-            md.append("")
+            md += _mode_table("camera", ["scenes"], RANDOM_MODES, table)
     if parts.get("ist", {}).get("result"):
         ist = parts["ist"]["result"]
         start = next(iter(ist.values()))["start_frame"]
