@@ -700,3 +700,7 @@ def _kept_parts(out: Path, meta: dict, parts: list[str]) -> dict:
         if missing:
             raise SystemExit(f"{out}: part {name} reads {', '.join(missing)}, not yet run")
     return res
+
+
+if __name__ == "__main__":
+    main()
