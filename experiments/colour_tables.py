@@ -692,7 +692,7 @@ def _kept_parts(out: Path, meta: dict, parts: list[str]) -> dict:
     stale = [k for k in keys if old.get(k) != meta[k]]
     if stale:
         if res:
-            print(f"{out}: its {', '.join(stale)} differ from this run's; its tables are dropped")
+            print(f"{out}: not this run's {', '.join(stale)}; its tables are dropped")
         res, old = {}, {}
     res["meta"] = {**meta, "parts": old.get("parts", {})}
     for name in parts:
