@@ -91,6 +91,10 @@ TRAIN_VARIANTS = {
         "life.verify_after": 0.0,
         "reid.depth_speed": 150.0,
     },
+    "evidence 0.05": {"life.min_evidence": 0.05},
+    "evidence 0.1": {"life.min_evidence": 0.1},
+    "evidence 0.15": {"life.min_evidence": 0.15},
+    "evidence 0.2": {"life.min_evidence": 0.2},
 }
 
 

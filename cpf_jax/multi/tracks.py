@@ -2,8 +2,8 @@
 
 Each slot holds a status (``config.FREE``, ``TENTATIVE``, ``ACTIVE``, ``LOST``), an
 identity (0 until confirmed), counts of the frames in a row its filter found or missed
-its target, and what re-identification remembers of the target: its last box, velocity
-and depth, and the body colours of its last unoccluded frame (the RGB-D filter's body
+its target, and what re-identification remembers of the target: its last box, velocity,
+depth and speed in depth, and the body colours of its last unoccluded frame (the RGB-D filter's body
 template, ``rgbd.templates``). Counts are in frames; ``LifeParams`` holds the thresholds.
 
 * A tentative target is confirmed after ``confirm`` found frames in a row (and takes an
@@ -58,6 +58,7 @@ class Tracks(NamedTuple):
     velocity: Array  # [K, 2] px per frame, its box centre's last velocity
     depth: Array  # [K] mm, its last depth (0: unknown)
     appearance: Array  # [K, F] body colours of its last unoccluded frame
+    depth_speed: Array  # [K] mm per frame, the speed of its depth when last found
 
 
 class Events(NamedTuple):
@@ -84,6 +85,7 @@ def empty_tracks(k: int, n_colours: int) -> Tracks:
         jnp.zeros((k, 2), jnp.float32),
         jnp.zeros((k,), jnp.float32),
         jnp.zeros((k, n_colours), jnp.float32),
+        jnp.zeros((k,), jnp.float32),
     )
 
 
@@ -215,15 +217,18 @@ def remember(
     velocity: Array,
     depth: Array,
     appearance: Array,
+    depth_velocity: Array,
 ) -> Tracks:
     """What re-identification remembers of each confirmed target found this frame: its
-    box, velocity and depth, and its body colours when no cell is occluded."""
+    box, velocity, depth and speed in depth (``depth_velocity [K]`` mm per frame), and its
+    body colours when no cell is occluded."""
     ok = found & (tracks.status == ACTIVE)
     colours = ok & unoccluded
     return tracks._replace(
         box=jnp.where(ok[:, None], box, tracks.box),
         velocity=jnp.where(ok[:, None], velocity, tracks.velocity),
         depth=jnp.where(ok & (depth > 0), depth, tracks.depth),
+        depth_speed=jnp.where(ok, jnp.abs(depth_velocity), tracks.depth_speed),
         appearance=jnp.where(colours[:, None], appearance, tracks.appearance),
     )
 
