@@ -94,7 +94,7 @@ TRAIN_VARIANTS = {
         "reid.depth_speed": 150.0,
         "life.min_evidence": 0.0,
     },
-    "evidence 0.05": {"life.min_evidence": 0.05},
+    "evidence 0.1": {"life.min_evidence": 0.1},
     "evidence 0.15": {"life.min_evidence": 0.15},
     "evidence 0.2": {"life.min_evidence": 0.2},
 }

@@ -89,7 +89,7 @@ TRACK_SPEC = (
         lost_after=P(15.0, "softplus", False),
         forget_after=P(100.0, "softplus", False),
         verify_after=P(5.0, "softplus", False),
-        min_evidence=P(0.1, "sigmoid", False),
+        min_evidence=P(0.05, "sigmoid", False),
     ),
     ReidParams(
         appearance=P(0.5, "sigmoid", False),
