@@ -14,7 +14,7 @@ A fixed number of slots (``MultiConfig.max_targets``) each hold an RGB-D box fil
 
     claim      who owns each pixel, and each slot's depth image          (claim.py)
     track      every slot's RGB-D step on its own depth image (vmap)    (cpf_jax.rgbd)
-    judge      hits and misses, exclusion, drops, losses, deaths         (tracks.py)
+    judge      hits (own pixels), misses, exclusion, drops, losses, deaths (claim, tracks)
     confirm    tentative targets confirmed, re-identified or named       (tracks.py, reid.py)
     remember   box, velocity, depth and body colours of found targets    (tracks.py)
     birth      the detector on unclaimed foreground, new tentative slots (births.py)

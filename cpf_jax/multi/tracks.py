@@ -3,9 +3,14 @@
 Each slot holds a status (``config.FREE``, ``TENTATIVE``, ``ACTIVE``, ``LOST``), an
 identity (0 until confirmed), counts of the frames in a row its filter found or missed
 its target, and what re-identification remembers of the target: its last box, velocity,
-depth and speed in depth, and the body colours of its last unoccluded frame (the RGB-D filter's body
-template, ``rgbd.templates``). Counts are in frames; ``LifeParams`` holds the thresholds.
+depth and speed in depth, and the body colours of its last unoccluded frame (the RGB-D
+filter's body template, ``rgbd.templates``). Counts are in frames; ``LifeParams`` holds
+the thresholds.
 
+* A slot's target is found when its filter reports a box and the target's own pixels fill
+  at least ``min_evidence`` of the filter's estimate (``claim.evidence``: foreground at its
+  depth that no other target claims); a target hidden behind a nearer one is missed, not
+  found on the floor or on a farther person left in its box, so its misses count.
 * A tentative target is confirmed after ``confirm`` found frames in a row (and takes an
   identity, ``reid.py``), and dropped after ``tentative_misses`` missed ones.
 * A confirmed target missed ``lost_after`` frames in a row is lost: it is no longer
