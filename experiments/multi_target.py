@@ -75,22 +75,28 @@ PERSON_SHARE = (0.2, 0.5)
 #: fields and their values.
 TRAIN_VARIANTS = {
     "default": {},
+    "no evidence (min_evidence 0)": {"life.min_evidence": 0.0},
     "confirm 2": {"life.confirm": 2.0},
     "N 100": {"config.n_particles": 100},
     "lost after 8": {"life.lost_after": 8.0},
     "no re-anchoring": {"claim.reanchor_growth": 1e6},
     "claim margin 0.1": {"claim.margin": 0.1},
-    "verify always": {"life.verify_after": 0.0},
+    "verify always": {"life.verify_after": 0.0, "life.min_evidence": 0.0},
     "appearance 0.4": {"reid.appearance": 0.4},
-    "reid depth 150 mm/frame": {"reid.depth_speed": 150.0},
+    "reid depth 150 mm/frame": {"reid.depth_speed": 150.0, "life.min_evidence": 0.0},
     "re-anchor on slivers within 0.5 widths": {
         "claim.reanchor_aspect": 0.01,
         "claim.reanchor_margin": 0.5,
+        "life.min_evidence": 0.0,
     },
     "verify always + reid depth 150 mm/frame": {
         "life.verify_after": 0.0,
         "reid.depth_speed": 150.0,
+        "life.min_evidence": 0.0,
     },
+    "evidence 0.1": {"life.min_evidence": 0.1},
+    "evidence 0.15": {"life.min_evidence": 0.15},
+    "evidence 0.2": {"life.min_evidence": 0.2},
 }
 
 

@@ -107,6 +107,36 @@ def test_claimed_mask_against_a_loop():
     )
 
 
+def _evidence_loop(foreground, depth, owner, boxes, z, gate):
+    out = np.zeros(len(z))
+    for k, (x, y, w, h) in enumerate(boxes):
+        n = 0
+        for r in range(H):
+            for c in range(W):
+                inside = x <= c + 0.5 < x + w and y <= r + 0.5 < y + h
+                d = float(depth[r, c])
+                mine = owner[r, c] in (-1, k)
+                n += inside and foreground[r, c] and d > 0 and abs(d - z[k]) < gate[k] and mine
+        out[k] = n / max(w * h, 1.0) if z[k] > 0 else 0.0
+    return out
+
+
+def test_evidence_counts_own_unclaimed_foreground_at_the_targets_depth():
+    def case(seed):
+        rng = np.random.default_rng(seed)
+        depth, boxes, z, gate, claiming = _scene(rng)
+        owner = _owner_loop(depth, boxes, z, gate, claiming)
+        foreground = rng.uniform(size=(H, W)) < 0.7
+        return foreground, depth, owner, boxes, z, gate
+
+    args = case(5)
+    check_kernel(claim.evidence, _evidence_loop, args, batch=[args, case(6)])
+    foreground, depth, owner, boxes, z, gate = args
+    # Slot 1 shares pixels with slot 0 at its depth: those slot 0 owns are not its evidence.
+    alone = claim.evidence(foreground, depth, np.full_like(owner, -1), boxes, z, gate)
+    assert float(alone[1]) > float(claim.evidence(*args)[1]) > 0
+
+
 def _same_place_loop(a, za, ga, b, zb, gb, share):
     out = np.zeros((len(a), len(b)), bool)
     for i in range(len(a)):
@@ -255,7 +285,7 @@ def _reid_loop(params, appearance, depth, box, rows, memory, pool):
             d_app = np.sqrt(max(1 - np.sum(np.sqrt(p * q)), 0.0))
             m = float(memory.missed[j])
             dz = abs(depth[i] - memory.depth[j])
-            sz = float(params.depth) + float(params.depth_speed) * m
+            sz = float(params.depth) + (float(params.depth_speed) + memory.depth_speed[j]) * m
             c = box[i, :2] + box[i, 2:] / 2
             o = memory.box[j, :2] + memory.box[j, 2:] / 2 + memory.velocity[j] * min(m, 10.0)
             dc = np.linalg.norm(c - o)
@@ -282,9 +312,11 @@ def test_reid_cost_against_a_loop():
         ),
         velocity=rng.normal(0, 2, (k, 2)).astype(np.float32),
         depth=rng.uniform(2000, 3000, k).astype(np.float32),
+        depth_speed=np.array([0.0, 150.0, 20.0, 60.0], np.float32),
     )
     appearance = memory.appearance[[1, 0, 2, 3]] + rng.uniform(0, 0.2, (k, 4)).astype(np.float32)
-    depth = memory.depth[[1, 0, 2, 3]] + np.float32(100)
+    # New target 0 is 1.2 m from old target 1, within its gate only through its speed.
+    depth = memory.depth[[1, 0, 2, 3]] + np.array([1200, 100, 100, 100], np.float32)
     box = memory.box[[1, 0, 2, 3]] + np.float32(5)
     rows = np.array([True, True, False, True])
     pool = np.array([True, True, True, False])
@@ -292,6 +324,7 @@ def test_reid_cost_against_a_loop():
     want = _reid_loop(params, appearance, depth, box, rows, memory, pool)
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
     assert np.isfinite(got).sum() >= 2
+    assert np.isfinite(got[0, 1])
 
 
 @pytest.mark.parametrize("bad", ["births", "slots"])

@@ -40,6 +40,7 @@ __all__ = [
     "claim_owner",
     "slot_depths",
     "claimed_mask",
+    "evidence",
     "same_place",
     "box_depths",
 ]
@@ -132,6 +133,27 @@ def claimed_mask(depth: Array, boxes: Array, z: Array, gate: Array, claiming: Ar
     near = (jnp.abs(d[None] - z[:, None, None]) < gate[:, None, None]) | (d[None] <= 0)
     mine = rows[:, :, None] & cols[:, None, :] & near & (claiming & (z > 0))[:, None, None]
     return jnp.any(mine, axis=0)
+
+
+def evidence(
+    foreground: Array, depth: Array, owner: Array, boxes: Array, z: Array, gate: Array
+) -> Array:
+    """``[K]``: the share of each box ``[K, 4]`` (xywh) that its own target explains: the
+    ``foreground [H, W]`` pixels within ``gate [K]`` of its depth ``z [K]`` (mm) that no
+    other target owns (``owner [H, W]``, ``claim_owner``). A target whose box holds little
+    of it is not seen, whatever its filter reports: the pixels a nearer target claims are
+    that target's, and the floor or a farther person left in the box are not him."""
+    height, width = depth.shape
+    d = depth.astype(jnp.float32)
+    rows, cols = _inside(boxes, height, width)
+    k = jnp.arange(z.shape[0])
+    near = jnp.abs(d[None] - z[:, None, None]) < gate[:, None, None]
+    free = (owner[None] < 0) | (owner[None] == k[:, None, None])
+    own = (foreground & (d > 0))[None] & near & free & (z > 0)[:, None, None]
+    count = jnp.einsum(
+        "kh,khw,kw->k", rows.astype(jnp.float32), own.astype(jnp.float32), cols.astype(jnp.float32)
+    )
+    return count / jnp.maximum(boxes[:, 2] * boxes[:, 3], 1.0)
 
 
 def same_place(

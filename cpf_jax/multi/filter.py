@@ -14,7 +14,7 @@ A fixed number of slots (``MultiConfig.max_targets``) each hold an RGB-D box fil
 
     claim      who owns each pixel, and each slot's depth image          (claim.py)
     track      every slot's RGB-D step on its own depth image (vmap)    (cpf_jax.rgbd)
-    judge      hits and misses, exclusion, drops, losses, deaths         (tracks.py)
+    judge      hits (own pixels), misses, exclusion, drops, losses, deaths (claim, tracks)
     confirm    tentative targets confirmed, re-identified or named       (tracks.py, reid.py)
     remember   box, velocity, depth and body colours of found targets    (tracks.py)
     birth      the detector on unclaimed foreground, new tentative slots (births.py)
@@ -77,6 +77,7 @@ class MultiInfo(NamedTuple):
     ident: Array  # [K] int32 identity of each slot (0: none)
     status: Array  # [K] int32 (config.FREE, TENTATIVE, ACTIVE, LOST)
     found: Array  # [K] bool: the slot's filter found its target (any status)
+    evidence: Array  # [K] share of its estimate its own unclaimed pixels fill (claim.evidence)
     events: tracks.Events
 
 
@@ -265,16 +266,18 @@ def multi_init(
     return state
 
 
-def _judge(config, params: MultiParams, state: MultiState, infos, obs, boxes) -> tuple:
+def _judge(config, params: MultiParams, state: MultiState, infos, obs, boxes, evidence) -> tuple:
     """Hits and misses, exclusion, and the status changes but confirmation; ``boxes [K,
-    4]``: where each slot's target is (the estimate and the reported box)."""
+    4]``: where each slot's target is (the estimate and the reported box); ``evidence
+    [K]``: the share of each estimate that its target's own pixels fill."""
     tr = state.tracks
     # The templates' depths: a box's measured depth is the occluder's while one passes.
     z = _target_depths(state.slots)
     gate = depth_tolerance(params.rgbd, z)
     seen = tracks.seen_distance(_colours(config, obs, infos.box), tr)
     appearance = params.reid.appearance
-    found = tracks.verified(~infos.lost, tr, seen, params.life.verify_after, appearance)
+    seen_now = ~infos.lost & (evidence >= params.life.min_evidence)
+    found = tracks.verified(seen_now, tr, seen, params.life.verify_after, appearance)
     tr = tracks.count_frames(tr, found)
     loser = tracks.duplicates(params.claim.duplicate_overlap, tr, found, boxes, z, gate)
     tr, events = tracks.advance(params.life, tr, found, loser, seen, appearance)
@@ -311,7 +314,10 @@ def multi_step(
     obs = observe(config.rgbd, params.rgbd.foreground, frame, state.background)
     # judge
     boxes = union(infos.estimate, infos.box)
-    tr, events, found = _judge(config, params, state, infos, obs, boxes)
+    evidence = claim.evidence(
+        obs.foreground, frame.depth, owner, infos.estimate, pred.depth, pred.gate
+    )
+    tr, events, found = _judge(config, params, state, infos, obs, boxes, evidence)
     # confirm
     z = _target_depths(slots)
     tr, next_id, new, old = tracks.confirm(
@@ -322,7 +328,9 @@ def multi_step(
     w = jnp.exp(slots.cloud.log_weights)
     velocity = jnp.einsum("kn,knd->kd", w, slots.cloud.particles[..., 2:4])
     unoccluded = jnp.max(infos.vote, axis=-1) < 0.1
-    tr = tracks.remember(tr, found, unoccluded, infos.box, velocity, z, slots.body.histogram)
+    tr = tracks.remember(
+        tr, found, unoccluded, infos.box, velocity, z, slots.body.histogram, slots.depth.velocity
+    )
     # birth
     state = state._replace(tracks=tr, next_id=next_id)
     state, (started, evicted) = add_births(config, params, k_birth, state, frame, obs, found, boxes)
@@ -343,6 +351,7 @@ def multi_step(
         ident=tr.ident,
         status=tr.status,
         found=found,
+        evidence=evidence,
         events=events,
     )
     return state._replace(frame=state.frame + 1), info

@@ -47,6 +47,7 @@ class LifeParams(NamedTuple):
     lost_after: Array  # missed frames in a row after which a confirmed target is lost
     forget_after: Array  # missed frames in a row after which a lost target dies
     verify_after: Array  # missed frames after which a target found again must look like it
+    min_evidence: Array  # least share of its estimate its own unclaimed pixels fill (found)
 
 
 class ReidParams(NamedTuple):
@@ -88,6 +89,7 @@ TRACK_SPEC = (
         lost_after=P(15.0, "softplus", False),
         forget_after=P(100.0, "softplus", False),
         verify_after=P(5.0, "softplus", False),
+        min_evidence=P(0.05, "sigmoid", False),
     ),
     ReidParams(
         appearance=P(0.5, "sigmoid", False),

@@ -7,13 +7,15 @@ assignment (``kernels.assignment.linear_assignment``, in the jitted step)::
     cost = d_app + weight_depth (dz / sz)^2 + weight_reach (dc / sc)^2
 
 with ``d_app`` the Bhattacharyya distance of the body colours (the new target's body
-template against the one remembered from the old target's last unoccluded frames),
-``dz`` the depth difference against ``sz = depth + depth_speed m`` and ``dc`` the distance
-of the box centres (the old box moved by its velocity for at most ``EXTRAPOLATE`` frames)
-against ``sc = (reach + reach_speed m) h``, ``m`` the old target's missed frames and ``h``
-its box height. A pair beyond any of the three gates (``d_app > appearance``, ``dz > sz``,
-``dc > sc``) is forbidden. A matched new target takes the old identity; the others get new
-ones.
+template against the one remembered from the old target's last unoccluded frames), ``dz``
+the depth difference against ``sz = depth + (depth_speed + |v_z|) m`` (``v_z`` the old
+target's depth velocity when last seen: out of sight, a fast walker may be that much
+farther, or nearer once he turns, for every frame; the depth is not extrapolated) and
+``dc`` the distance of the box centres (the old box moved by its velocity for at most
+``EXTRAPOLATE`` frames) against ``sc = (reach + reach_speed m) h``, ``m`` the old target's
+missed frames and ``h`` its box height. A pair beyond any of the three gates (``d_app >
+appearance``, ``dz > sz``, ``dc > sc``) is forbidden. A matched new target takes the old
+identity; the others get new ones.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ def reid_cost(
     d_app = bhattacharyya(appearance[:, None], memory.appearance[None])  # [K, K]
     missed = memory.missed.astype(jnp.float32)[None]
     dz = jnp.abs(depth[:, None] - memory.depth[None])
-    sz = params.depth + params.depth_speed * missed
+    sz = params.depth + (params.depth_speed + memory.depth_speed[None]) * missed
     centre = box[:, :2] + 0.5 * box[:, 2:]
     old = memory.box[:, :2] + 0.5 * memory.box[:, 2:]
     old = (

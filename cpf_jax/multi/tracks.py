@@ -2,10 +2,15 @@
 
 Each slot holds a status (``config.FREE``, ``TENTATIVE``, ``ACTIVE``, ``LOST``), an
 identity (0 until confirmed), counts of the frames in a row its filter found or missed
-its target, and what re-identification remembers of the target: its last box, velocity
-and depth, and the body colours of its last unoccluded frame (the RGB-D filter's body
-template, ``rgbd.templates``). Counts are in frames; ``LifeParams`` holds the thresholds.
+its target, and what re-identification remembers of the target: its last box, velocity,
+depth and speed in depth, and the body colours of its last unoccluded frame (the RGB-D
+filter's body template, ``rgbd.templates``). Counts are in frames; ``LifeParams`` holds
+the thresholds.
 
+* A slot's target is found when its filter reports a box and the target's own pixels fill
+  at least ``min_evidence`` of the filter's estimate (``claim.evidence``: foreground at its
+  depth that no other target claims); a target hidden behind a nearer one is missed, not
+  found on the floor or on a farther person left in its box, so its misses count.
 * A tentative target is confirmed after ``confirm`` found frames in a row (and takes an
   identity, ``reid.py``), and dropped after ``tentative_misses`` missed ones.
 * A confirmed target missed ``lost_after`` frames in a row is lost: it is no longer
@@ -58,6 +63,7 @@ class Tracks(NamedTuple):
     velocity: Array  # [K, 2] px per frame, its box centre's last velocity
     depth: Array  # [K] mm, its last depth (0: unknown)
     appearance: Array  # [K, F] body colours of its last unoccluded frame
+    depth_speed: Array  # [K] mm per frame, the speed of its depth when last found
 
 
 class Events(NamedTuple):
@@ -84,6 +90,7 @@ def empty_tracks(k: int, n_colours: int) -> Tracks:
         jnp.zeros((k, 2), jnp.float32),
         jnp.zeros((k,), jnp.float32),
         jnp.zeros((k, n_colours), jnp.float32),
+        jnp.zeros((k,), jnp.float32),
     )
 
 
@@ -215,15 +222,18 @@ def remember(
     velocity: Array,
     depth: Array,
     appearance: Array,
+    depth_velocity: Array,
 ) -> Tracks:
     """What re-identification remembers of each confirmed target found this frame: its
-    box, velocity and depth, and its body colours when no cell is occluded."""
+    box, velocity, depth and speed in depth (``depth_velocity [K]`` mm per frame), and its
+    body colours when no cell is occluded."""
     ok = found & (tracks.status == ACTIVE)
     colours = ok & unoccluded
     return tracks._replace(
         box=jnp.where(ok[:, None], box, tracks.box),
         velocity=jnp.where(ok[:, None], velocity, tracks.velocity),
         depth=jnp.where(ok & (depth > 0), depth, tracks.depth),
+        depth_speed=jnp.where(ok, jnp.abs(depth_velocity), tracks.depth_speed),
         appearance=jnp.where(colours[:, None], appearance, tracks.appearance),
     )
 
