@@ -21,7 +21,9 @@ variants a tight box of the visible pixels). While layer 1 has lost the target, 
 keeps the last box it had, so that the points stay where the body was last seen. With
 ``foreground`` layer 2's body is limited to foreground pixels against the background
 model: layer 1's own (which sees its background updates) when layer 1 is the RGB-D
-filter, else ``context.background``.
+filter, with the frame's own scene behind its unseen pixels as layer 1 sees it
+(``rgbd.filter.unseen_scene``, ``RGBDConfig.side_scene``; without background frames every
+pixel is unseen), else ``context.background``.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from cpf_jax.points import (
     default_point_params,
 )
 from cpf_jax.rgbd import RGBDConfig, RGBDParams, build_rgbd_filter, default_rgbd_params
+from cpf_jax.rgbd.filter import unseen_scene
 from cpf_jax.types import Frame
 
 __all__ = [
@@ -65,6 +68,7 @@ __all__ = [
     "check_points",
     "layer2_frame",
     "body_surface",
+    "scene_for_layer2",
     "find_body_points",
     "body_points_confidence",
 ]
@@ -197,12 +201,27 @@ def _background(context: Context | None) -> Background | None:
     )
 
 
+def scene_for_layer2(
+    config: CascadeConfig, frame: Frame, box: Array, background: Background | None
+) -> Background | None:
+    """The background layer 2 reads in ``frame`` for ``box`` outside a step: ``background``,
+    or without one, when layer 1 is the RGB-D filter reading each frame's own scene, that
+    scene as layer 1 starts on ``box`` (``_layer2_background``)."""
+    if background is not None or not config.layer1_background or config.box.side_scene is None:
+        return background
+    s1 = build_box_filter(config.box).init(
+        default_box_params(config.box), jax.random.PRNGKey(0), frame, box
+    )
+    return _layer2_background(config, None, s1, frame)
+
+
 def body_surface(
     config: CascadeConfig, frame: Frame, box: Array, background: Background | None = None
 ) -> Array:
     """``[Hw * Ww, 3]`` mm: camera-frame points of layer 2's segmented body in ``box`` (NaN
     off the body), as a step sees it; for display (``cpf-track`` logs it to Rerun)."""
-    inp = layer2_frame(config, frame, jnp.asarray(box, jnp.float32), background)
+    box = jnp.asarray(box, jnp.float32)
+    inp = layer2_frame(config, frame, box, scene_for_layer2(config, frame, box, background))
     return body_points_3d(body_model(config.points, inp.depth, inp.box, inp.foreground))
 
 
@@ -212,7 +231,8 @@ def find_body_points(
     """Points to start layer 2 on, found on the body in ``box``: ``[5, 2]`` frame positions
     of ``AUTO_POINTS`` and the reach ``[4]`` mm of the hands and feet
     (``points.body_extremities``)."""
-    inp = layer2_frame(config, frame, jnp.asarray(box, jnp.float32), background)
+    box = jnp.asarray(box, jnp.float32)
+    inp = layer2_frame(config, frame, box, scene_for_layer2(config, frame, box, background))
     bm = body_model(config.points, inp.depth, inp.box, inp.foreground)
     return body_extremities(config.points, bm)
 
@@ -241,9 +261,16 @@ def body_points_confidence(reach) -> tuple[float, tuple[str, ...]]:
     return share, doubts
 
 
-def _layer2_background(config: CascadeConfig, state: CascadeState, s1) -> Background | None:
-    """The background layer 2's foreground is taken against (module docstring)."""
-    return s1.background if config.layer1_background else state.background
+def _layer2_background(
+    config: CascadeConfig, own: Background | None, s1, frame: Frame
+) -> Background | None:
+    """The background layer 2's foreground is taken against (module docstring): layer 1's
+    state's, its unseen pixels given the frame's scene around layer 1's estimate ``s1``."""
+    if not config.layer1_background:
+        return own
+    if config.box.side_scene is None:
+        return s1.background
+    return unseen_scene(config.box, s1.background, frame, s1.estimate, s1.depth.depth)
 
 
 @memoised_build
@@ -260,7 +287,7 @@ def build_cascade(config: CascadeConfig) -> Filter:
         points = None if context is None else context.points
         s1 = layer1.init(params.box, k1, frame, box, Context(background=background))
         own = None if config.layer1_background else background
-        bg2 = s1.background if config.layer1_background else own
+        bg2 = _layer2_background(config, own, s1, frame)
         s2 = layer2.init(
             params.points, k2, layer2_frame(config, frame, box, bg2), box, Context(points=points)
         )
@@ -271,7 +298,7 @@ def build_cascade(config: CascadeConfig) -> Filter:
         s1, i1 = layer1.step(params.box, k1, state.box, frame)
         new_box = i1.estimate if config.box_source == "estimate" else i1.box
         box = jnp.where(i1.lost, state.points.box, new_box)
-        bg2 = _layer2_background(config, state, s1)
+        bg2 = _layer2_background(config, state.background, s1, frame)
         s2, i2 = layer2.step(params.points, k2, state.points, layer2_frame(config, frame, box, bg2))
         common = (i1.box, i1.lost, i1.ess, i1.log_evidence, i1.estimate, i1.windowed)
         info = CascadeInfo(*common, i1, i2, box)

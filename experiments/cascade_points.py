@@ -71,10 +71,12 @@ def _background(case: str, seq):
     return median_background(jnp.asarray(seq.colour[::8]), jnp.asarray(seq.depth[::8]))
 
 
-def run_cascade(case: str, seq, source: str, keys: int, use_fg: bool, config_kw: dict):
+def run_cascade(case: str, seq, source: str, keys: int, use_fg: bool):
     config = CascadeConfig(
         box=_box_config(source, seq),
-        points=PointConfig(weighting="combined", **config_kw),
+        points=PointConfig(weighting="combined").with_foreground()
+        if use_fg
+        else PointConfig(weighting="combined"),
         foreground=use_fg,
     )
     filt = build_cascade(config)
@@ -111,7 +113,7 @@ def main() -> None:
         f"{args.keys} keys, layer 1 with N = {N_BOX}.",
     ]
     for case in args.cases.split(","):
-        kw, use_fg, config_kw = dp.CASES[case]
+        kw, use_fg = dp.CASES[case]
         seq = make_sequence(case, seed=0, n_frames=args.frames, fps=30.0, **kw)
         md += [
             "",
@@ -124,10 +126,10 @@ def main() -> None:
         for source in SOURCES:
             if source == "gt":
                 fg = dp.temporal_foreground(seq) if use_fg else None
-                runs, idx = dp.run(seq, "combined", args.keys, fg, config_kw)
+                runs, idx = dp.run(seq, "combined", args.keys, fg)
                 box_sr = 100.0
             else:
-                runs, idx = run_cascade(case, seq, source, args.keys, use_fg, config_kw)
+                runs, idx = run_cascade(case, seq, source, args.keys, use_fg)
                 srs = []
                 for info, _ in runs:
                     ious = np.asarray(iou(jnp.asarray(info.estimate), jnp.asarray(seq.boxes[1:])))

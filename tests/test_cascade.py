@@ -384,3 +384,27 @@ def test_cli_points_bad_input(extra, message, capsys):
     code = main(["walk_towards", "--max-frames", "2", "--no-progress", *extra])
     assert code == 2
     assert message in capsys.readouterr().err
+
+
+def test_layer2_foreground_without_background_frames_is_the_frames_own_scene(walk):
+    """Without background frames layer 1's background is unseen everywhere, and a foreground
+    against it is every pixel; layer 2's is the depth nearer than the scene layer 1 reads in
+    the same frame (``rgbd.filter.unseen_scene``): the walker and not the room behind him."""
+    from cpf_jax.cascade import _layer2_background, layer2_frame
+
+    seq, idx, _ = walk
+    config = dataclasses.replace(_config(seq, n_points=16), foreground=True)
+    params = _params(config)
+    context = Context(points=jnp.asarray(seq.joints2d[0, idx] + 0.5))
+    frame = Frame(jnp.asarray(seq.colour[0]), jnp.asarray(seq.depth[0]))
+    box = jnp.asarray(seq.boxes[0])
+    state = jax.jit(build_cascade(config).init)(params, jax.random.PRNGKey(0), frame, box, context)
+    scene = _layer2_background(config, None, state.box, frame)
+    fg = np.asarray(layer2_frame(config, frame, box, scene).foreground)
+    x, y, w, h = (int(v) for v in seq.boxes[0])
+    # Measured: 0.54 of the frame (the room behind the walker is out; the floor before him,
+    # nearer than the plane behind him, stays in) and 0.88 of his box.
+    assert fg.mean() < 0.75
+    assert fg[y : y + h, x : x + w].mean() > 0.8
+    head = (seq.joints2d[0, idx[0]] + 0.5).astype(int)
+    assert fg[head[1], head[0]]

@@ -22,9 +22,10 @@ recording whose people come and go make the model.
 a synthetic scenario's head, hands and feet; ``auto``: head, hands and feet found
 on the body in the start box, :func:`cpf_jax.cascade.find_body_points`, which
 pairs with ``--init auto``; or ``x,y;x,y;...`` pixels of the start frame) tracked
-in depth inside every layer-1 box. The CSV gains
-``<point>_x, <point>_y`` (pixels) and ``<point>_X_mm, _Y_mm, _Z_mm`` (camera
-millimetres) columns, the Rerun log the 2D and 3D points, and on a synthetic
+in depth inside every layer-1 box, on the pixels nearer than the background model or,
+when layer 1 is the RGB-D filter without background frames, than the frame's own scene.
+The CSV gains ``<point>_x, <point>_y`` (pixels) and ``<point>_X_mm, _Y_mm, _Z_mm``
+(camera millimetres) columns, the Rerun log the 2D and 3D points, and on a synthetic
 scenario (``joints``, or ``auto``: each point against the joint it stands for) the
 summary gives each point's median 2D and 3D error.
 

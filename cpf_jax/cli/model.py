@@ -82,6 +82,7 @@ def _cascade(args, source, inputs: Inputs, layer1_config, box_params, background
 
     from cpf_jax.cascade import CascadeConfig, build_cascade, check_points, default_cascade_params
     from cpf_jax.points import PointConfig
+    from cpf_jax.rgbd import RGBDConfig
 
     if args.point_particles < 1:
         raise UsageError(f"--point-particles must be >= 1, got {args.point_particles}")
@@ -91,7 +92,10 @@ def _cascade(args, source, inputs: Inputs, layer1_config, box_params, background
     intrinsics = calib.colour if calib is not None else source.intrinsics
     if intrinsics is None:
         intrinsics = _guessed_intrinsics(source)
-    foreground = background is not None
+    # Layer 2's body from the foreground: against the background model, or without one
+    # against the frame's own scene that the RGB-D filter reads (cascade module docstring).
+    frameless = isinstance(layer1_config, RGBDConfig) and layer1_config.side_scene is not None
+    foreground = background is not None or frameless
     points_config = PointConfig(  # the log shows the body's surface
         n_particles=args.point_particles, intrinsics=intrinsics, report_surface=logged(args)
     )
