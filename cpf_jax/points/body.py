@@ -305,13 +305,19 @@ def pixel_centre(bm: BodyModel, rc: Array) -> Array:
 
 def surface_depth(config: PointConfig, bm: BodyModel, xy: Array) -> Array:
     """``[...]`` mm: the body's depth under frame positions ``xy [..., 2]`` (the nearest body
-    pixel's off the body; 0 without a body)."""
+    pixel's off the body; 0 without a body). The search for the nearest body pixel, a pass
+    over the window per position, runs only when some position is off the body
+    (``lax.cond``)."""
     rc, inside = window_pixels(bm, xy, config.window)
     on = inside & bm.body[rc[..., 0], rc[..., 1]]
-    ji = dk.frame_to_window(bm.window, xy)
-    near, found = dk.nearest_true(bm.body, jnp.stack([ji[..., 1], ji[..., 0]], -1))
-    rc = jnp.where(on[..., None], rc, near)
-    return jnp.where(found, bm.depth[rc[..., 0], rc[..., 1]], 0.0)
+
+    def nearest(rc_):
+        ji = dk.frame_to_window(bm.window, xy)
+        near, _ = dk.nearest_true(bm.body, jnp.stack([ji[..., 1], ji[..., 0]], -1))
+        return jnp.where(on[..., None], rc_, near)
+
+    rc = lax.cond(jnp.all(on), lambda rc_: rc_, nearest, rc)
+    return jnp.where(jnp.any(bm.body), bm.depth[rc[..., 0], rc[..., 1]], 0.0)
 
 
 def ray_point(intrinsics, xy: Array, z: Array, offset: Array) -> Array:
