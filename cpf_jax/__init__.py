@@ -4,7 +4,8 @@ Every filter has one shape (``cpf_jax.filter``): a builder takes a frozen config
 returns ``Filter(init, step)``; ``track`` runs any filter over a sequence as one
 ``lax.scan``. Layer 1 tracks the person's box in colour (``cpf_jax.colour``) or in RGB-D
 with grid cells and occlusion flags (``cpf_jax.rgbd``); layer 2 tracks points on the body
-in depth (``cpf_jax.points``); ``cpf_jax.cascade`` runs both in one step. Parameters and
+in depth (``cpf_jax.points``); ``cpf_jax.cascade`` runs both in one step; ``cpf_jax.multi``
+tracks several people at once with identities. Parameters and
 their constraints: ``cpf_jax.params``; kernels: ``cpf_jax.kernels``; frame sources:
 ``cpf_jax.io``; metrics: ``cpf_jax.metrics``; Rerun logging: ``cpf_jax.viz``; synthetic
 sequences: ``cpf_jax.synthetic``; batch runs: ``cpf_jax.batch``; gradient tuning:
@@ -36,6 +37,7 @@ from cpf_jax.filter import (
 )
 from cpf_jax.io import open_source
 from cpf_jax.metrics import summarise
+from cpf_jax.multi import MultiConfig, build_multi_filter, default_multi_params
 from cpf_jax.points import PointConfig, PointFrame, build_point_filter, default_point_params
 from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
 from cpf_jax.types import KINECT_V2_DEPTH, Frame, Intrinsics
@@ -58,6 +60,7 @@ __all__ = [
     "Frame",
     "Intrinsics",
     "MotionParams",
+    "MultiConfig",
     "PointConfig",
     "PointFrame",
     "RGBDConfig",
@@ -65,11 +68,13 @@ __all__ = [
     "build_box_filter",
     "build_cascade",
     "build_colour_filter",
+    "build_multi_filter",
     "build_point_filter",
     "build_rgbd_filter",
     "default_box_params",
     "default_cascade_params",
     "default_colour_params",
+    "default_multi_params",
     "default_point_params",
     "default_rgbd_params",
     "enable_compile_cache",

@@ -23,8 +23,17 @@ whole call is one jitted program per ``fn``, shapes and mesh.
 
 On one CPU the mesh has one device. Several CPU devices for testing:
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` before JAX starts (each
-device then gets a share of the host's cores). On several GPUs or hosts the same
-code runs on ``jax.devices()`` (after ``jax.distributed.initialize()`` for hosts).
+device then gets a share of the host's cores). On several GPUs the same code runs on
+``jax.devices()``.
+
+Several processes (hosts, or processes on one machine): each calls
+:func:`start_distributed` (``jax.distributed.initialize`` with the coordinator's
+address, the number of processes and its own index) before anything else touches JAX,
+then runs the same ``run_sharded`` call on the same whole batch. The mesh then spans every
+process's devices; each process feeds its devices their blocks of the batch
+(``jax.make_array_from_callback``) and the outputs are gathered back whole on every
+process (``multihost_utils.process_allgather``), so every process returns what one
+process would.
 """
 
 from __future__ import annotations
@@ -36,11 +45,11 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cpf_jax.filter import Filter, track_boxes
 
-__all__ = ["AXIS", "INNER", "batch_mesh", "run_sharded", "track_sharded"]
+__all__ = ["AXIS", "INNER", "batch_mesh", "run_sharded", "start_distributed", "track_sharded"]
 
 AXIS = "batch"
 INNER = ("map", "vmap")
@@ -83,6 +92,29 @@ def _pad(batched: Any, n: int, to: int) -> Any:
     return jax.tree_util.tree_map(pad, batched)
 
 
+def start_distributed(coordinator: str, num_processes: int, process_id: int) -> None:
+    """Join this process to a run over ``num_processes`` JAX processes whose process 0
+    listens at ``coordinator`` (``"host:port"``), as ``process_id``: CPU collectives over
+    gloo (the CPU backend has none of its own), then ``jax.distributed.initialize``. Call
+    it first, before JAX starts a backend; the process-wide switch is the caller's."""
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(
+        coordinator_address=coordinator, num_processes=num_processes, process_id=process_id
+    )
+
+
+def _global(tree: Any, mesh: Mesh, spec: PartitionSpec) -> Any:
+    """``tree``'s arrays as global arrays of ``mesh`` laid out by ``spec``, each process
+    filling its own devices' blocks from its whole copy (None leaves stay None)."""
+    sharding = NamedSharding(mesh, spec)
+
+    def one(x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
+
+    return jax.tree_util.tree_map(one, tree)
+
+
 @functools.lru_cache(maxsize=64)  # bounded: a notebook may pass a new lambda each call
 def _program(fn: Callable, mesh: Mesh, axis: str, inner: str, n_shared: int) -> Callable:
     def block(batched, *shared):
@@ -121,7 +153,17 @@ def run_sharded(
     n = _batch_size(batched)
     d = mesh.devices.size
     padded = _pad(batched, n, -(-n // d) * d)
-    out = _program(fn, mesh, axis, inner, len(shared))(padded, *shared)
+    program = _program(fn, mesh, axis, inner, len(shared))
+    if jax.process_count() > 1:  # the mesh spans processes: global arrays in and out
+        from jax.experimental import multihost_utils
+
+        out = program(
+            _global(padded, mesh, PartitionSpec(axis)),
+            *_global(shared, mesh, PartitionSpec()),
+        )
+        out = multihost_utils.process_allgather(out, tiled=True)
+    else:
+        out = program(padded, *shared)
     return jax.tree_util.tree_map(lambda x: x[:n], out)
 
 

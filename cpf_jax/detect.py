@@ -50,8 +50,10 @@ from cpf_jax.types import Frame
 __all__ = [
     "DetectConfig",
     "Detection",
+    "clean_mask",
     "find_person",
     "find_person_scored",
+    "mask_person_boxes",
     "person_boxes",
     "person_confidence",
 ]
@@ -106,9 +108,15 @@ def _foreground(colour: np.ndarray, depth: np.ndarray, background: Background, c
     fg = np.asarray(
         _mask_fn(c.depth_abs, c.depth_rel, c.colour_threshold)(colour, depth, background)
     )
-    fg = fg.astype(np.uint8)
-    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((c.open_px, c.open_px), np.uint8))
-    return cv2.morphologyEx(fg, cv2.MORPH_CLOSE, np.ones((c.close_px, c.close_px), np.uint8))
+    return clean_mask(fg, c)
+
+
+def clean_mask(mask: np.ndarray, config: DetectConfig = DetectConfig()) -> np.ndarray:
+    """``[H, W] uint8`` foreground ``mask`` after the opening and the closing (rule 2)."""
+    fg = np.asarray(mask).astype(np.uint8)
+    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((config.open_px, config.open_px), np.uint8))
+    kernel = np.ones((config.close_px, config.close_px), np.uint8)
+    return cv2.morphologyEx(fg, cv2.MORPH_CLOSE, kernel)
 
 
 def _main_depth_part(blob: np.ndarray, z: np.ndarray, c: DetectConfig):
@@ -148,11 +156,17 @@ def _blobs(frame: Frame, background: Background, config: DetectConfig) -> list:
         raise ValueError(
             f"background is {np.shape(background.depth)} but the frame is {depth.shape}"
         )
+    return _mask_blobs(_foreground(colour, depth, background, config).astype(bool), depth, config)
+
+
+def _mask_blobs(mask: np.ndarray, depth: np.ndarray, config: DetectConfig) -> list:
+    """``[(area, (x, y, w, h))]`` of the person-shaped blobs of a foreground ``mask``
+    (rules 3 and 4), largest first."""
     h, w = depth.shape
     z = depth.astype(np.float32)
     min_px = config.min_area * h * w
     found = []
-    queue = [_foreground(colour, depth, background, config).astype(bool)]  # unexamined masks
+    queue = [mask]  # unexamined masks
     while queue:
         n, labels, stats, _ = cv2.connectedComponentsWithStats(
             queue.pop().astype(np.uint8), connectivity=8
@@ -169,6 +183,22 @@ def _blobs(frame: Frame, background: Background, config: DetectConfig) -> list:
                 found.append((area, box))
     found.sort(key=lambda t: -t[0])
     return found
+
+
+def mask_person_boxes(
+    mask: np.ndarray, depth: np.ndarray, config: DetectConfig = DetectConfig()
+) -> tuple[np.ndarray, np.ndarray]:
+    """``([K, 4] float32 xywh boxes, [K] int64 pixel counts)`` of the person-shaped blobs of
+    a foreground ``mask [H, W]`` (already opened and closed, or as the caller wants it),
+    largest first: rules 3 and 4 of the module docstring on a mask the caller made, e.g.
+    the foreground that no tracked person claims (``cpf_jax.multi``)."""
+    mask = np.asarray(mask, bool)
+    depth = np.asarray(depth)
+    if mask.shape != depth.shape:
+        raise ValueError(f"mask {mask.shape} and depth {depth.shape} must both be [H, W]")
+    found = _mask_blobs(mask, depth, config)
+    boxes = np.asarray([b for _, b in found], np.float32).reshape(-1, 4)
+    return boxes, np.asarray([a for a, _ in found], np.int64)
 
 
 def person_boxes(

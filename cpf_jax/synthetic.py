@@ -143,6 +143,10 @@ class Occluder:
     # mirrored when this seed's walker starts towards -x, so that the occluder meets the
     # walker in the same way for every seed.
     mirror_x: bool = False
+    # Who this is in multi-person ground truth (``meta["occluder_boxes"]``): occluders
+    # that share an identity are one person seen on several walks (one who leaves and comes
+    # back); None: its own, ``2 + k`` for occluder ``k`` (the walker is 1).
+    identity: int | None = None
 
 
 @dataclass(frozen=True)
@@ -1468,9 +1472,12 @@ class _Frames(NamedTuple):
     joint_vis: np.ndarray  # [T, J] bool
     vis_count: np.ndarray  # [T] visible person pixels
     unocc_count: np.ndarray  # [T] person pixels without the occluders
+    occ_boxes: np.ndarray  # [T, K, 4] float32 tight xywh box of each occluder's visible pixels
+    occ_count: np.ndarray  # [T, K] its visible pixels
+    occ_unocc: np.ndarray  # [T, K] its pixels with nothing else in front of it
 
 
-def _allocate(T: int) -> _Frames:
+def _allocate(T: int, n_occluders: int) -> _Frames:
     H, W, J = HEIGHT, WIDTH, len(body.JOINT_NAMES)
     return _Frames(
         np.empty((T, H, W, 3), np.uint8),
@@ -1480,6 +1487,9 @@ def _allocate(T: int) -> _Frames:
         np.zeros((T, J), bool),
         np.zeros(T, np.int64),
         np.zeros(T, np.int64),
+        np.zeros((T, n_occluders, 4), np.float32),
+        np.zeros((T, n_occluders), np.int64),
+        np.zeros((T, n_occluders), np.int64),
     )
 
 
@@ -1520,6 +1530,31 @@ def _joint_visibility(jc, gb: rnd.GBuffer, obj, ppart, win, intr, vis_row) -> No
         pid = gb.pid[jv[j], ju[j]]
         if pid >= 0 and obj[pid] == 1:
             vis_row[j] = _JOINT_PART_OK[j, ppart[pid]]
+
+
+def _occluder_truth(st: _Stage, out: _Frames, t: int, win, gb: rnd.GBuffer, obj, occ_prims):
+    """Each occluder's tight box and visible pixels in frame ``t``, and its pixels with
+    nothing but the room behind (a ray cast of it alone): the ground truth of every person
+    in a multi-person scene."""
+    r0, r1, c0, c1 = win
+    seen = gb.pid >= 0
+    for k in range(out.occ_boxes.shape[1]):
+        mine = [p for p in occ_prims if p.object_id == 2 + k]
+        if not mine:
+            continue
+        m = seen & (obj[np.maximum(gb.pid, 0)] == 2 + k)
+        out.occ_count[t, k] = int(np.count_nonzero(m))
+        if out.occ_count[t, k]:
+            rows, cols = np.nonzero(m.any(axis=1))[0], np.nonzero(m.any(axis=0))[0]
+            out.occ_boxes[t, k] = (
+                c0 + cols[0],
+                r0 + rows[0],
+                cols[-1] - cols[0] + 1,
+                rows[-1] - rows[0] + 1,
+            )
+        alone = rnd.GBuffer.over(st.bg.gbuf.z[r0:r1, c0:c1])
+        rnd.raycast(mine, 0, alone, st.rays.xy[:, r0:r1, c0:c1], st.intr, (r0, c0))
+        out.occ_unocc[t, k] = int(np.count_nonzero(alone.pid >= 0))
 
 
 def _dynamic_albedo(gb: rnd.GBuffer, dyn, pmat, materials, tex: _Tex):
@@ -1644,6 +1679,7 @@ def _render_window(
     person = dyn & (obj[np.maximum(gb.pid, 0)] == 1)
     out.mask[t][ws] = person
     out.vis_count[t] = int(np.count_nonzero(person))
+    _occluder_truth(st, out, t, win, gb, obj, occ_prims)
     _joint_visibility(out.joints3d[t], gb, obj, ppart, win, st.intr, out.joint_vis[t])
     nrm = gb.normal[:, dyn]
     alb, ir = _dynamic_albedo(gb, dyn, pmat, materials, st.tex)
@@ -1684,7 +1720,7 @@ def _render_frame(
 
 
 def _render_frames(st: _Stage, walk: _Walk, dyn: _Dynamic, seed: int) -> _Frames:
-    out = _allocate(walk.n_frames)
+    out = _allocate(walk.n_frames, len(st.spec.occluders))
     banks = _noise_banks(seed, st.spec.colour_noise)
     walk_sign = -1.0 if walk.heading_xz[0, 0] < 0 else 1.0  # the walker's initial x direction
     for t in range(walk.n_frames):
@@ -1761,6 +1797,16 @@ def _meta(spec: ScenarioSpec, seed: int, st: _Stage, walk: _Walk, out: _Frames) 
         path_waypoints_m=np.asarray(walk.plan.waypoints),
         walk_length_m=walk.plan.walk_length,
         part_names=body.PART_NAMES,
+        # Every occluder's ground truth, as the walker's: its tight box (xywh, zeros when
+        # unseen), visible pixels and visible fraction (of its pixels with nothing else in
+        # front; 0 when out of view), and its identity (``Occluder.identity``).
+        occluder_boxes=out.occ_boxes,
+        occluder_pixels=out.occ_count,
+        occluder_visible_fraction=(out.occ_count / np.maximum(out.occ_unocc, 1)).astype(np.float32),
+        occluder_identity=np.array(
+            [2 + k if oc.identity is None else oc.identity for k, oc in enumerate(spec.occluders)],
+            np.int64,
+        ),
         box_convention="xywh top-left, 0-based, pixel c covers [c, c+1); tight box of mask",
     )
 

@@ -10,11 +10,14 @@ image is back-projected in the 3D view when intrinsics are known):
 ``world/camera/image``                    colour ``EncodedImage`` (JPEG; ``Image`` RGB raw)
 ``world/camera/depth``                    ``EncodedDepthImage`` (16-bit PNG, mm) every
                                           ``depth_every``-th frame (``DepthImage`` raw)
-``world/camera/<path>``                   boxes (``tracker/box``, ``gt/box``), particles
+``world/camera/<path>``                   boxes (``tracker/box``, ``gt/box``, ``people``:
+                                          one colour and label per identity), particles
                                           (``tracker/particles``), 2D body points
 ``world/<path>``                          3D points (``body/points3d``, ``surface``),
                                           metres in the camera frame (input in mm)
 ``series/<name>``                         ``Scalars`` time series (ESS, timings)
+``events``                                ``TextLog``: births, losses, re-identifications
+                                          and deaths of identities
 ========================================  ==============================================
 
 A recording is compact by default, so that a live run can afford it: colour is JPEG at
@@ -47,6 +50,7 @@ from cpf_jax.types import Frame, Intrinsics
 
 __all__ = [
     "RerunLogger",
+    "identity_colour",
     "weight_colours",
     "default_blueprint",
     "IMAGE_SPACE",
@@ -83,6 +87,15 @@ def weight_colours(weights: np.ndarray, log: bool = False) -> np.ndarray:
     frac = (pos - lo)[:, None]
     rgb = _RAMP[lo] * (1 - frac) + _RAMP[lo + 1] * frac
     return np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+
+
+def identity_colour(ident: int) -> tuple[int, int, int]:
+    """A colour of its own for identity ``ident`` (hues a golden angle apart, so that
+    identities born one after the other differ most), RGB 0-255."""
+    import colorsys
+
+    hue = (0.61803398875 * int(ident)) % 1.0
+    return tuple(int(round(255 * c)) for c in colorsys.hsv_to_rgb(hue, 0.85, 0.95))
 
 
 def default_blueprint(points: bool = True) -> rrb.Blueprint:
@@ -286,6 +299,34 @@ class RerunLogger:
     def log_gt_box(self, i: int, box_xywh: Any, label: str | None = "GT") -> None:
         """Log the ground-truth box at ``world/camera/gt/box`` (red)."""
         self.log_box(i, box_xywh, path="gt/box", label=label, colour=(220, 40, 40))
+
+    def log_people(self, i: int, ids: Any, boxes_xywh: Any, path: str = "people") -> None:
+        """Log the boxes ``[K, 4]`` (xywh) of people ``ids [K]`` at ``world/camera/<path>``,
+        each in its identity's colour (:func:`identity_colour`) with its id as label; no
+        people clears the entity."""
+        ids = _np(ids).astype(np.int64).reshape(-1)
+        boxes = _np(boxes_xywh).astype(np.float32).reshape(-1, 4)
+        self._at(i)
+        entity = self._image_path(path)
+        if not len(ids):
+            self.rec.log(entity, rr.Clear(recursive=False))
+            return
+        self.rec.log(
+            entity,
+            rr.Boxes2D(
+                mins=boxes[:, :2],
+                sizes=boxes[:, 2:],
+                labels=[f"id {n}" for n in ids],
+                colors=[identity_colour(n) for n in ids],
+                class_ids=ids,
+                show_labels=True,
+            ),
+        )
+
+    def log_event(self, i: int, text: str, level: str = "INFO") -> None:
+        """Log one line of text (a birth, a loss, a death) at ``events``."""
+        self._at(i)
+        self.rec.log("events", rr.TextLog(text, level=level))
 
     # -- particles and points ----------------------------------------------------
     def log_particles(

@@ -33,9 +33,12 @@ Tables:
 * ``extra_scenarios``: the distractor, light-switch and dark-clothes scenes at N = 100.
 * ``crossing``: real OTB Crossing (../shared/data/otb/Crossing), if present.
 
-Run: ``python experiments/colour_tables.py`` (``--quick`` for a smoke run).
-Writes ``experiments/results/colour_tables.json``, ``.md`` and ``.png`` (Table 3.1
-against the thesis's, Crossing success plots; ``--figure-only`` redraws it from the JSON).
+Run: ``python experiments/colour_tables.py`` (``--quick`` for a smoke run); the run
+is made of parts (``PARTS``: particles, thesis_model, models, sampling, sigma,
+ablation, scenes, terms), each written when it finishes with its host, date and
+time, and ``--part NAME`` reruns one part into the existing results. Writes
+``experiments/results/colour_tables.json``, ``.md`` and ``.png`` (Table 3.1 against
+the thesis's, Crossing success plots; ``--figure-only`` redraws it from the JSON).
 """
 
 from __future__ import annotations
@@ -46,8 +49,11 @@ import datetime
 import functools
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
+import host  # same folder: the CPU model
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -82,7 +88,7 @@ LOOKALIKE = ("dark_clothes", "distractor_pass")
 HISTOGRAM_ONLY = "histogram only (no layout, no template update, unseen background)"
 #: The ``likelihood_terms`` row with the finer 12x3 layout grid; the label is a key of the
 #: results JSON.
-LAYOUT_12X3 = "layout 12x3 (default until 2026-11-28)"
+LAYOUT_12X3 = "layout 12x3 (the former default)"
 #: The parameters the results record (``meta.params``): JSON key -> parameter path.
 PARAM_KEYS = {
     "sigma": "histogram.sigma",
@@ -385,203 +391,165 @@ def markdown(res: dict) -> str:
         lines.append(
             f"min success at N = 100 over walking scenarios: {res['min_success_n100']:.1f} %"
         )
+    parts = res["meta"].get("parts", {})
+    if parts:
+        lines += ["", "| part | run | host | seconds |", "|---|---|---|---:|"]
+        lines += [
+            f"| {name} | {p['date']} | {p['host']} | {p['seconds']} |" for name, p in parts.items()
+        ]
     if not res["meta"].get("complete", True):
         lines.append("INCOMPLETE: the run stopped before every table was written.")
     return "\n".join(lines) + "\n"
 
 
-def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scene-seeds", type=int, default=3)
-    ap.add_argument("--keys", type=int, default=3, help="filter seeds per scene")
-    ap.add_argument("--quick", action="store_true", help="one scene, one key, fewer rows")
-    ap.add_argument("--out", default=str(RESULTS / "colour_tables.json"))
-    ap.add_argument(
-        "--figure-only",
-        action="store_true",
-        help="redraw the figure from the JSON at --out (re-running Crossing for missing curves)",
-    )
-    args = ap.parse_args(argv)
-    if args.figure_only:
-        out = Path(args.out)
-        res = json.loads(out.read_text())
-        add_crossing_curves(res)
-        out.write_text(json.dumps(res, indent=2) + "\n")
-        figure(res, out.with_suffix(".png"))
-        print(f"wrote {out.with_suffix('.png')}")
-        return res
-    seeds = range(1 if args.quick else args.scene_seeds)
-    keys = 1 if args.quick else args.keys
-    ns = (20, 100) if args.quick else (20, 40, 60, 80, 100, 120, 140, 160)
-    base = ColourConfig()
-    params = default_colour_params()
-    t0 = time.time()
-    res: dict = {}
-    res["meta"] = {
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "scene_seeds": len(seeds),
-        "filter_seeds": keys,
-        "walking_scenarios": list(WALKING),
-        "config": {k: str(v) for k, v in dataclasses.asdict(base).items()},
-        "params": {
-            k: np.asarray(pp.get(params, path)).round(4).tolist() for k, path in PARAM_KEYS.items()
-        },
-        "seconds": 0,
-        "complete": False,
-        "jax": jax.__version__,
-        "note": (
-            f"Success rate (%, IoU >= 0.5) averaged over {len(seeds)} scene seeds x {keys} "
-            f"filter seeds per scenario; walking scenarios: {', '.join(WALKING)}."
-        ),
-    }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-
-    def save():
-        """Write what the run has so far: an interrupted run keeps its finished tables."""
-        res["meta"]["seconds"] = round(time.time() - t0)
-        out.write_text(json.dumps(res, indent=2) + "\n")
-        out.with_suffix(".md").write_text(markdown(res))
-        figure(res, out.with_suffix(".png"))
-        # Drop compiled runners between tables: a whole run compiles dozens of
-        # configs, and with every executable kept LLVM runs out of memory.
-        _runner.cache_clear()
-        jax.clear_caches()
-
+def _part_particles(res: dict, run: _Run) -> None:
+    """Table 3.1 (success rate vs N) and, from its N = 100 row, Table 3.3 and every scenario."""
     res["table_3_1"] = {}
-    per_n = {}
-    for n in ns:
-        cfg = dataclasses.replace(base, n_particles=n)
-        mean, per = mean_over(WALKING, seeds, keys, cfg, params)
+    for n in run.ns:
+        cfg = dataclasses.replace(run.base, n_particles=n)
+        mean, per = mean_over(WALKING, run.seeds, run.keys, cfg, run.params)
         res["table_3_1"][str(n)] = mean
-        per_n[n] = per
+        if n == 100:
+            res["per_scenario_n100"] = per
+            res["min_success_n100"] = float(min(per.values()))
+            res["table_3_3"] = {k: per[v] for k, v in SPEEDS.items()}
         print(f"N={n}: {mean:.1f} % {per}", flush=True)
-        save()
-    # The same curve with the thesis's own model (8-tuple AR1, motion-guided, its
-    # velocities undamped as in eqs. 3.14-3.17): the scenes are hard enough that N
-    # matters for it (the default random walk needs fewer particles). The library's AR1
-    # and AR2 damp the size velocity (MotionParams.size_velocity_decay); the thesis's
-    # rows keep its undamped models, and Tables 3.4 and 3.5 report the damped AR1
-    # beside them.
-    undamped = pp.replace(params, "motion.size_velocity_decay", jnp.float32(1.0))
-    res["table_3_1_ar1"] = {}
-    for n in (20, 60, 100, 160) if not args.quick else ns:
-        cfg = dataclasses.replace(base, n_particles=n, model="ar1", hierarchical=True)
-        res["table_3_1_ar1"][str(n)] = mean_over(WALKING, seeds, keys, cfg, undamped)[0]
-        print(f"N={n}, ar1: {res['table_3_1_ar1'][str(n)]:.1f} %", flush=True)
-        save()
-    per100 = per_n[100]
-    res["per_scenario_n100"] = per100
-    res["min_success_n100"] = float(min(per100.values()))
-    res["table_3_3"] = {k: per100[v] for k, v in SPEEDS.items()}
-    save()
+        run.save()
 
-    n100 = dataclasses.replace(base, n_particles=100)
+
+def _part_thesis_model(res: dict, run: _Run) -> None:
+    """Table 3.1 with the thesis's own model (8-tuple AR1, motion-guided, its velocities
+    undamped as in eqs. 3.14-3.17): the scenes are hard enough that N matters for it (the
+    default random walk needs fewer particles)."""
+    res["table_3_1_ar1"] = {}
+    for n in (20, 60, 100, 160) if not run.quick else run.ns:
+        cfg = dataclasses.replace(run.base, n_particles=n, model="ar1", hierarchical=True)
+        res["table_3_1_ar1"][str(n)] = mean_over(WALKING, run.seeds, run.keys, cfg, run.undamped)[0]
+        print(f"N={n}, ar1: {res['table_3_1_ar1'][str(n)]:.1f} %", flush=True)
+        run.save()
+
+
+def _part_models(res: dict, run: _Run) -> None:
+    """Table 3.4: the dynamic models at N = 100; the thesis's rows keep its undamped
+    models and the library's damped AR1 and AR2 are reported beside them."""
+    n100 = dataclasses.replace(run.base, n_particles=100)
     res["table_3_4"] = {}
     for label, model in MODELS.items():
-        if model == base.model:
+        if model == run.base.model:
             res["table_3_4"][label] = res["table_3_1"]["100"]
             continue
-        p = undamped if model in SIZE_VELOCITY_MODELS else params
-        mean, _ = mean_over(WALKING, seeds, keys, dataclasses.replace(n100, model=model), p)
+        p = run.undamped if model in SIZE_VELOCITY_MODELS else run.params
+        mean, _ = mean_over(WALKING, run.seeds, run.keys, dataclasses.replace(n100, model=model), p)
         res["table_3_4"][label] = mean
         print(f"model {label}: {mean:.1f} %", flush=True)
-        save()
-    decay = float(params.motion.size_velocity_decay)
+        run.save()
+    decay = float(run.params.motion.size_velocity_decay)
     for model in SIZE_VELOCITY_MODELS:
         label = f"8-tuple {model.upper()}, size velocity damped ({decay:g})"
         res["table_3_4"][label] = mean_over(
-            WALKING, seeds, keys, dataclasses.replace(n100, model=model), params
+            WALKING, run.seeds, run.keys, dataclasses.replace(n100, model=model), run.params
         )[0]
         print(f"model {label}: {res['table_3_4'][label]:.1f} %", flush=True)
-        save()
+        run.save()
 
-    # Motion-guided sampling is the thesis's refinement of its AR1 model: compared on
-    # ar1, as in the thesis, and on the default random walk (guided by the estimate).
+
+def _part_sampling(res: dict, run: _Run) -> None:
+    """Table 3.5: motion-guided sampling, the thesis's refinement of its AR1 model, compared
+    on ar1 as in the thesis and on the default random walk (guided by the estimate)."""
     for key, model, p in (
-        ("table_3_5", "ar1", undamped),
-        ("table_3_5_damped", "ar1", params),
-        ("table_3_5_default", base.model, params),
+        ("table_3_5", "ar1", run.undamped),
+        ("table_3_5_damped", "ar1", run.params),
+        ("table_3_5_default", run.base.model, run.params),
     ):
-        n50 = dataclasses.replace(base, n_particles=50, model=model)
+        n50 = dataclasses.replace(run.base, n_particles=50, model=model)
         res[key] = {
-            label: mean_over(WALKING, seeds, keys, dataclasses.replace(n50, hierarchical=h), p)[0]
+            label: mean_over(
+                WALKING, run.seeds, run.keys, dataclasses.replace(n50, hierarchical=h), p
+            )[0]
             for label, h in (("plain", False), ("hierarchical", True))
         }
         print(f"table 3.5, {model}: {res[key]}", flush=True)
-    save()
+    run.save()
 
+
+def _part_sigma(res: dict, run: _Run) -> None:
+    """The likelihood width sigma at N = 100 (why sigma = 1 is too flat)."""
+    n100 = dataclasses.replace(run.base, n_particles=100)
     res["sigma_sweep"] = {}
     for sigma in (0.05, 0.1, 0.2, 0.5, 1.0):
-        p = pp.replace(params, "histogram.sigma", jnp.float32(sigma))
-        if abs(sigma - float(params.histogram.sigma)) < 1e-6:
+        p = pp.replace(run.params, "histogram.sigma", jnp.float32(sigma))
+        if abs(sigma - float(run.params.histogram.sigma)) < 1e-6:
             res["sigma_sweep"][str(sigma)] = res["table_3_1"]["100"]
             continue
-        res["sigma_sweep"][str(sigma)] = mean_over(WALKING, seeds, keys, n100, p)[0]
+        res["sigma_sweep"][str(sigma)] = mean_over(WALKING, run.seeds, run.keys, n100, p)[0]
     print(f"sigma sweep: {res['sigma_sweep']}", flush=True)
-    save()
+    run.save()
 
-    # From the thesis's likelihood to ours, one term at a time (histogram-only rows
-    # first, then the default's layout, template update and neutral unseen colours).
-    hist100 = n100.histogram_only()
+
+def _part_ablation(res: dict, run: _Run) -> None:
+    """From the thesis's likelihood to ours at N = 100, one term at a time (histogram-only
+    rows first, then the default's layout, template update and neutral unseen colours)."""
+    hist100 = dataclasses.replace(run.base, n_particles=100).histogram_only()
     thesis_cfg = dataclasses.replace(
         hist100, parts=1, ring_margin=0.0, model="ar1", hierarchical=False
     )
-    no_contrast = pp.replace(params, "contrast.weight", jnp.float32(0.0))
-    thesis_p = undamped._replace(
-        contrast=undamped.contrast._replace(weight=jnp.float32(0.0)),
-        histogram=undamped.histogram._replace(sigma=jnp.float32(1.0)),
-        motion=undamped.motion._replace(tau=jnp.asarray(THESIS_TAU, jnp.float32)),
+    no_contrast = pp.replace(run.params, "contrast.weight", jnp.float32(0.0))
+    u = run.undamped
+    thesis_p = u._replace(
+        contrast=u.contrast._replace(weight=jnp.float32(0.0)),
+        histogram=u.histogram._replace(sigma=jnp.float32(1.0)),
+        motion=u.motion._replace(tau=jnp.asarray(THESIS_TAU, jnp.float32)),
     )
+    s, k = run.seeds, run.keys
+    one_part = dataclasses.replace(hist100, parts=1, ring_margin=0.0)
     res["likelihood_ablation"] = {
-        "thesis (1 histogram, sigma=1, thesis tau)": mean_over(
-            WALKING, seeds, keys, thesis_cfg, thesis_p
-        )[0],
-        "1 histogram, no contrast, our sigma/tau": mean_over(
-            WALKING,
-            seeds,
-            keys,
-            dataclasses.replace(hist100, parts=1, ring_margin=0.0),
-            no_contrast,
-        )[0],
+        "thesis (1 histogram, sigma=1, thesis tau)": mean_over(WALKING, s, k, thesis_cfg, thesis_p)[
+            0
+        ],
+        "1 histogram, no contrast, our sigma/tau": mean_over(WALKING, s, k, one_part, no_contrast)[
+            0
+        ],
         "2 parts, no contrast": mean_over(
-            WALKING,
-            seeds,
-            keys,
-            dataclasses.replace(hist100, ring_margin=0.0),
-            no_contrast,
+            WALKING, s, k, dataclasses.replace(hist100, ring_margin=0.0), no_contrast
         )[0],
     }
-    hist_mean, hist_per = mean_over(WALKING, seeds, keys, hist100, params)
+    hist_mean, hist_per = mean_over(WALKING, s, k, hist100, run.params)
     res["likelihood_ablation"]["2 parts + contrast (histogram only)"] = hist_mean
     res["likelihood_ablation"]["ours (default: + layout, template update, unseen neutral)"] = res[
         "table_3_1"
     ]["100"]
+    # The histogram-only walking runs, which ``likelihood_terms`` reuses (same config, seeds).
+    res["histogram_only_per_scenario"] = hist_per
     print(f"ablation: {res['likelihood_ablation']}", flush=True)
-    save()
+    run.save()
 
-    res["extra_scenarios"] = mean_over(EXTRA, seeds, keys, n100, params)[1]
-    crossing_keys = 1 if args.quick else 5
-    res["crossing"] = crossing(100, crossing_keys, base, params)
+
+def _part_scenes(res: dict, run: _Run) -> None:
+    """The distractor, light-switch and dark-clothes scenes at N = 100, and OTB Crossing."""
+    n100 = dataclasses.replace(run.base, n_particles=100)
+    res["extra_scenarios"] = mean_over(EXTRA, run.seeds, run.keys, n100, run.params)[1]
+    res["crossing"] = crossing(100, run.crossing_keys, run.base, run.params)
     print(f"crossing: {res['crossing']}", flush=True)
-    save()
+    run.save()
 
-    terms = likelihood_term_variants(base, params)
+
+def _part_terms(res: dict, run: _Run) -> None:
+    """The default against each of its real-video terms taken away and the alternatives:
+    walking, the look-alike scenes and Crossing at N = 100."""
     res["likelihood_terms"] = {}
-    for label, (cfg, p) in terms.items():
+    for label, (cfg, p) in likelihood_term_variants(run.base, run.params).items():
         cfg100 = dataclasses.replace(cfg, n_particles=100)
         if label == "default":
-            per, cross = per100, res["crossing"]
+            per, cross = res["per_scenario_n100"], res["crossing"]
             look = {n: res["extra_scenarios"][n] for n in LOOKALIKE}
         else:
-            # The histogram-only walking runs are the ablation's (same config and seeds).
             per = (
-                hist_per
+                res["histogram_only_per_scenario"]
                 if label == HISTOGRAM_ONLY
-                else mean_over(WALKING, seeds, keys, cfg100, p)[1]
+                else mean_over(WALKING, run.seeds, run.keys, cfg100, p)[1]
             )
-            cross = crossing(100, crossing_keys, cfg, p)
-            look = mean_over(LOOKALIKE, seeds, keys, cfg100, p)[1]
+            cross = crossing(100, run.crossing_keys, cfg, p)
+            look = mean_over(LOOKALIKE, run.seeds, run.keys, cfg100, p)[1]
         res["likelihood_terms"][label] = {
             "walking_mean": float(np.mean(list(per.values()))),
             "walking_min": float(min(per.values())),
@@ -590,11 +558,147 @@ def main(argv=None) -> dict:
             "crossing": cross,
         }
         print(f"terms {label}: {res['likelihood_terms'][label]}", flush=True)
-        save()
+        run.save()
 
-    res["meta"]["complete"] = True
-    save()
+
+#: The run's parts in order: name -> (function, the parts whose results it reads).
+PARTS = {
+    "particles": (_part_particles, ()),
+    "thesis_model": (_part_thesis_model, ()),
+    "models": (_part_models, ("particles",)),
+    "sampling": (_part_sampling, ()),
+    "sigma": (_part_sigma, ("particles",)),
+    "ablation": (_part_ablation, ("particles",)),
+    "scenes": (_part_scenes, ()),
+    "terms": (_part_terms, ("particles", "ablation", "scenes")),
+}
+
+
+class _Run(NamedTuple):
+    """What every part reads: the seeds, the configs and the writer of the results."""
+
+    seeds: range
+    keys: int
+    ns: tuple
+    quick: bool
+    base: ColourConfig
+    params: object
+    undamped: object
+    crossing_keys: int
+    save: Callable[[], None]
+
+
+def _meta(seeds, keys: int, base: ColourConfig, params) -> dict:
+    return {
+        "scene_seeds": len(seeds),
+        "filter_seeds": keys,
+        "walking_scenarios": list(WALKING),
+        "config": {k: str(v) for k, v in dataclasses.asdict(base).items()},
+        "params": {
+            k: np.asarray(pp.get(params, path)).round(4).tolist() for k, path in PARAM_KEYS.items()
+        },
+        "jax": jax.__version__,
+        "note": (
+            f"Success rate (%, IoU >= 0.5) averaged over {len(seeds)} scene seeds x {keys} "
+            f"filter seeds per scenario; walking scenarios: {', '.join(WALKING)}."
+        ),
+        "parts": {},
+        "complete": False,
+    }
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene-seeds", type=int, default=3)
+    ap.add_argument("--keys", type=int, default=3, help="filter seeds per scene")
+    ap.add_argument("--quick", action="store_true", help="one scene, one key, fewer rows")
+    ap.add_argument(
+        "--part",
+        action="append",
+        choices=list(PARTS),
+        help="run only these parts (repeatable); the others are kept from the JSON at --out",
+    )
+    ap.add_argument("--out", default=str(RESULTS / "colour_tables.json"))
+    ap.add_argument(
+        "--figure-only",
+        action="store_true",
+        help="redraw the figure from the JSON at --out (re-running Crossing for missing curves)",
+    )
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    if args.figure_only:
+        res = json.loads(out.read_text())
+        add_crossing_curves(res)
+        out.write_text(json.dumps(res, indent=2) + "\n")
+        figure(res, out.with_suffix(".png"))
+        print(f"wrote {out.with_suffix('.png')}")
+        return res
+    seeds = range(1 if args.quick else args.scene_seeds)
+    keys = 1 if args.quick else args.keys
+    base = ColourConfig()
+    params = default_colour_params()
+    meta = _meta(seeds, keys, base, params)
+    res: dict = {"meta": meta}
+    if args.part:
+        res = _kept_parts(out, meta, args.part)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    part_name = ""
+
+    def save():
+        """Write what the run has so far: an interrupted run keeps its finished tables."""
+        res["meta"]["parts"][part_name] = {
+            "date": datetime.datetime.now().isoformat(timespec="seconds"),
+            "host": host.describe(),
+            "seconds": round(time.time() - t0),
+        }
+        res["meta"]["complete"] = set(res["meta"]["parts"]) == set(PARTS)
+        out.write_text(json.dumps(res, indent=2) + "\n")
+        out.with_suffix(".md").write_text(markdown(res))
+        figure(res, out.with_suffix(".png"))
+        # Drop compiled runners between tables: a whole run compiles dozens of
+        # configs, and with every executable kept LLVM runs out of memory.
+        _runner.cache_clear()
+        jax.clear_caches()
+
+    run = _Run(
+        seeds=seeds,
+        keys=keys,
+        ns=(20, 100) if args.quick else (20, 40, 60, 80, 100, 120, 140, 160),
+        quick=args.quick,
+        base=base,
+        params=params,
+        undamped=pp.replace(params, "motion.size_velocity_decay", jnp.float32(1.0)),
+        crossing_keys=1 if args.quick else 5,
+        save=save,
+    )
+    for name, (part, _) in PARTS.items():
+        if args.part and name not in args.part:
+            continue
+        part_name, t0 = name, time.time()
+        res["meta"]["parts"].pop(name, None)
+        part(res, run)
     print(markdown(res))
+    return res
+
+
+def _kept_parts(out: Path, meta: dict, parts: list[str]) -> dict:
+    """The results at ``out`` to run ``parts`` on. Results of other seeds, another config or
+    other parameters are dropped (with a line saying so); a part whose inputs are missing
+    is a clear error."""
+    res = json.loads(out.read_text()) if out.exists() else {}
+    old = res.get("meta", {})
+    keys = ("scene_seeds", "filter_seeds", "config", "params")
+    stale = [k for k in keys if old.get(k) != meta[k]]
+    if stale:
+        if res:
+            print(f"{out}: not this run's {', '.join(stale)}; its tables are dropped")
+        res, old = {}, {}
+    res["meta"] = {**meta, "parts": old.get("parts", {})}
+    for name in parts:
+        missing = [d for d in PARTS[name][1] if d not in res["meta"]["parts"] and d not in parts]
+        if missing:
+            raise SystemExit(f"{out}: part {name} reads {', '.join(missing)}, not yet run")
     return res
 
 

@@ -1,7 +1,8 @@
 """The RGB-D filter without background frames: each frame is its own scene.
 
-    python experiments/rgbd_scene.py            # every part (results/rgbd_scene.*)
-    python experiments/rgbd_scene.py --quick    # fewer scenes and keys, to try a change
+    python experiments/rgbd_scene.py               # every part (results/rgbd_scene.*)
+    python experiments/rgbd_scene.py --part walks  # one part, the others kept from the JSON
+    python experiments/rgbd_scene.py --quick       # fewer scenes and keys, to try a change
 
 ``cpf-track --model grid-occlusion`` reads no background frames by default: the filter
 takes each frame's scene from the frame (``RGBDConfig.side_scene``), so it tracks from the
@@ -10,26 +11,26 @@ Three parts, each scored on the box the filter reports (``info.box``, what cpf-t
 writes), success rate at IoU 0.5 and AUC in percent:
 
 * The synthetic walks (static camera, walker in view from the first frame), default
-  grid-occlusion at N = 200 in three ways: the scenario's empty room given as the
-  background (what a static camera with empty frames gives), the frame's own scene (the
-  default), and every pixel foreground (``side_scene=None``). Training seeds 100-102 (on
-  which the defaults were chosen) and evaluation seeds 0-2 are reported apart.
+  grid-occlusion at N = 200 in two ways: the scenario's empty room given as the
+  background (what a static camera with empty frames gives) and the frame's own scene
+  (the default). Training seeds 100-102 (on which the defaults were chosen) and
+  evaluation seeds 0-2 are reported apart.
 * The randomised scenes of ``experiments/unseen.py`` (``cpf_jax.random_scenes``: size,
   view, a camera that pans, follows, shakes or zooms, clutter, look-alikes) with their
-  depth: the RGB-D default against every pixel foreground, by camera motion; the same
-  disjoint training and evaluation seed ranges as unseen.py.
+  depth: the RGB-D default by camera motion, on unseen.py's evaluation seeds.
 * IST images1 (real), from its first ground-truth frame as cpf-track starts it, with
   the calibration: the default against ``--background auto`` (the median of the
   recording's emptiest frames), 8 filter keys. Skipped with a message without
   ../shared/data.
 
-Writes ``results/rgbd_scene.json`` and ``results/rgbd_scene.md``.
+Writes ``results/rgbd_scene.json`` and ``results/rgbd_scene.md`` after each part, each
+part with its host and date (``--part`` runs some and keeps the others).
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import datetime
 import functools
 import json
 import sys
@@ -42,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import host  # noqa: E402  (same folder: the CPU name)
 from colour_tables import WALKING  # noqa: E402
-from unseen import EVAL_SEEDS, TRAIN_SEEDS, score  # noqa: E402
+from unseen import EVAL_SEEDS, score  # noqa: E402
 
 from cpf_jax import synthetic
 from cpf_jax.cascade import build_box_filter
@@ -61,9 +62,9 @@ IST_CALIB = ROOT / "experiments" / "calib" / "ist_piv.json"
 WALK_SEEDS = {"train": (100, 101, 102), "eval": (0, 1, 2)}
 # The walking scenarios (the target: SR >= 95 % on each) and a walker passing furniture.
 SCENARIOS = (*WALKING, "distractor_pass")
-WALK_MODES = ("empty room", "own scene", "every pixel foreground")
-RANDOM_SEEDS = {"train": TRAIN_SEEDS[:20], "eval": EVAL_SEEDS}
-RANDOM_MODES = ("own scene", "every pixel foreground")
+WALK_MODES = ("empty room", "own scene")
+RANDOM_SEEDS = {"eval": EVAL_SEEDS}
+RANDOM_MODES = ("own scene",)
 # A walker farther than the sensor's range has no depth: an RGB-D model cannot see him.
 MIN_DEPTH_SHARE = 0.5
 IST_MODES = ("own scene", "auto background")
@@ -75,17 +76,14 @@ RANDOM_FRAMES = 100
 
 
 def _config(box, frame_hw, mode: str, *extra: str):
-    """``cpf-track --model grid-occlusion``'s config and parameters for ``box``, with the
-    frame's own scene switched off for ``"every pixel foreground"``. The histogram window
-    is sized for the box rounded up to a power of 1.25 (one compile for similar boxes; the
-    window only decides how fast the exact histograms are counted)."""
+    """``cpf-track --model grid-occlusion``'s config and parameters for ``box``. The
+    histogram window is sized for the box rounded up to a power of 1.25 (one compile for
+    similar boxes; the window only decides how fast the exact histograms are counted)."""
     args = build_parser().parse_args(
         ["scene", "--model", "grid-occlusion", "--particles", str(PARTICLES), *extra]
     )
     size = 1.25 ** np.ceil(np.log(np.maximum(np.asarray(box[2:4], float), 8.0)) / np.log(1.25))
     config, params = box_config(args, model_options(args), np.r_[box[:2], size], frame_hw)
-    if mode == "every pixel foreground":
-        config = dataclasses.replace(config, side_scene=None)
     return config, params
 
 
@@ -198,45 +196,62 @@ def _mean(rows: list[dict], key: str) -> float:
     return float(np.mean([r[key] for r in rows]))
 
 
-def markdown(result: dict) -> str:
+def _heading(part: dict) -> str:
+    return f"{part['host']}, {part['date']}, N = {part['particles']}."
+
+
+def _mode_table(first: str, counts: list[str], modes: tuple, table: dict) -> list[str]:
+    """Markdown rows of ``table`` (``{row name: {count: n, mode: {"sr", "auc"}}}``): the
+    row's name, its ``counts`` columns, then SR / AUC per mode, and a blank line."""
+    md = ["| " + " | ".join([first, *counts, *modes]) + " |"]
+    md += ["|---|" + "---:|" * (len(counts) + len(modes))]
+    for name, row in table.items():
+        cells = [str(row[c]) for c in counts]
+        cells += [f"{row[m]['sr']:.1f} / {row[m]['auc']:.1f}" for m in modes]
+        md.append(f"| {name} | " + " | ".join(cells) + " |")
+    return [*md, ""]
+
+
+def markdown(parts: dict) -> str:
+    """The Markdown tables of the parts present in ``parts`` (``{name: {host, date,
+    particles, result}}``)."""
     md = [
         "# The RGB-D filter without background frames",
         "",
-        f"`python experiments/rgbd_scene.py`; {result['host']}. cpf-track's grid-occlusion "
-        f"filter at N = {PARTICLES}, scored on the box it reports: success rate at IoU 0.5 / "
-        "AUC, percent. 'own scene': the default, each frame's scene from the frame itself "
-        "(`RGBDConfig.side_scene`); 'every pixel foreground': without it.",
-        "",
-        "## Synthetic walks (static camera, walker in view from the first frame)",
+        "`python experiments/rgbd_scene.py`. cpf-track's grid-occlusion filter, scored on the "
+        "box it reports: success rate at IoU 0.5 / AUC, percent. 'own scene': the default, "
+        "each frame's scene from the frame itself (`RGBDConfig.side_scene`); 'empty room': "
+        "the scenario's empty room given as the background.",
         "",
     ]
-    for split, seeds in WALK_SEEDS.items():
-        md += [f"Seeds {', '.join(map(str, seeds))} ({split}), mean over seeds:", ""]
-        md += ["| scenario | " + " | ".join(WALK_MODES) + " |", "|---|" + "---:|" * len(WALK_MODES)]
-        for name, row in result["walks"][split].items():
-            cells = [f"{row[m]['sr']:.1f} / {row[m]['auc']:.1f}" for m in WALK_MODES]
-            md.append(f"| {name} | " + " | ".join(cells) + " |")
-        md.append("")
-    md += ["## Randomised scenes with depth, by camera motion", ""]
-    for split, part in result["random"].items():
-        seeds = RANDOM_SEEDS[split]
-        md += [
-            f"{split} seeds {seeds.start}-{seeds.stop - 1}; by camera motion the scenes whose "
-            f"walker has depth on at least {MIN_DEPTH_SHARE:.0%} of his first-frame pixels, "
-            "then the others (farther than the sensor's range) together:",
-            "",
-        ]
-        md += ["| camera | scenes | " + " | ".join(RANDOM_MODES) + " |"]
-        md += ["|---|---:|" + "---:|" * len(RANDOM_MODES)]
-        for camera, row in part.items():
-            cells = [f"{row[m]['sr']:.1f} / {row[m]['auc']:.1f}" for m in RANDOM_MODES]
-            md.append(f"| {camera} | {row['scenes']} | " + " | ".join(cells) + " |")
-        md.append("")
-    if result.get("ist_images1"):
-        ist = result["ist_images1"]
+    if "walks" in parts:
+        walks = parts["walks"]
+        md += ["## Synthetic walks (static camera, walker in view from the first frame)", ""]
+        md += [_heading(walks), ""]
+        for split, table in walks["result"].items():
+            seeds = WALK_SEEDS[split]
+            md += [f"Seeds {', '.join(map(str, seeds))} ({split}), mean over seeds:", ""]
+            md += _mode_table("scenario", [], WALK_MODES, table)
+    if "random" in parts:
+        random = parts["random"]
+        md += ["## Randomised scenes with depth, by camera motion", "", _heading(random), ""]
+        for split, table in random["result"]["by_camera"].items():
+            seeds = RANDOM_SEEDS[split]
+            md += [
+                f"{split} seeds {seeds.start}-{seeds.stop - 1}; by camera motion the scenes "
+                f"whose walker has depth on at least {MIN_DEPTH_SHARE:.0%} of his first-frame "
+                "pixels, then the others (farther than the sensor's range) together:",
+                "",
+            ]
+            md += _mode_table("camera", ["scenes"], RANDOM_MODES, table)
+    if parts.get("ist", {}).get("result"):
+        ist = parts["ist"]["result"]
         start = next(iter(ist.values()))["start_frame"]
+        n_keys = len(next(iter(ist.values()))["auc_per_key"])
         md += [
-            f"## IST images1 from its first ground-truth frame ({start}, 0-based), {IST_KEYS} keys",
+            f"## IST images1 from its first ground-truth frame ({start}, 0-based), {n_keys} keys",
+            "",
+            _heading(parts["ist"]),
             "",
             "| background | SR | AUC | AUC per key |",
             "|---|---:|---:|---|",
@@ -271,14 +286,14 @@ def _camera_means(rows: list[dict]) -> dict:
     return part
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--quick", action="store_true", help="a few scenes and one key each")
-    args = p.parse_args(argv)
-    result: dict = {"host": host.describe(), "particles": PARTICLES, "walks": {}, "random": {}}
-    result["ist_images1"] = ist_part(1 if args.quick else IST_KEYS)
+PARTS = ("ist", "walks", "random")
+RESULT_JSON = RESULTS / "rgbd_scene.json"
+
+
+def _walks(quick: bool) -> dict:
+    out = {}
     for split, seeds in WALK_SEEDS.items():
-        seeds = seeds[:1] if args.quick else seeds
+        seeds = seeds[:1] if quick else seeds
         table = {}
         for name in SCENARIOS:
             table[name] = {}
@@ -290,23 +305,48 @@ def main(argv: list[str] | None = None) -> int:
                 f"{m}: {v['sr']:5.1f}/{v['auc']:5.1f}" for m, v in table[name].items()
             )
             print(f"{split} {name} {cells}", flush=True)
-        result["walks"][split] = table
+        out[split] = table
+    return out
+
+
+def _random(quick: bool) -> dict:
+    out = {"by_camera": {}, "rows": {}}
     for split, seeds in RANDOM_SEEDS.items():
-        seeds = seeds[:4] if args.quick else seeds
+        seeds = seeds[:4] if quick else seeds
         rows = []
         for s in seeds:
             rows.append(random_row(s))
             _forget_compiles()
             print(f"{split} scene {s} {rows[-1]['camera']} {rows[-1]['runs']}", flush=True)
-        result["random"][split] = _by_camera(rows)
-        result.setdefault("random_rows", {})[split] = rows
+        out["by_camera"][split] = _by_camera(rows)
+        out["rows"][split] = rows
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="a few scenes and one key each")
+    p.add_argument("--part", action="append", choices=PARTS, help="run only this part (repeatable)")
+    args = p.parse_args(argv)
+    run = {
+        "ist": lambda: ist_part(1 if args.quick else IST_KEYS),
+        "walks": lambda: _walks(args.quick),
+        "random": lambda: _random(args.quick),
+    }
+    result = {}
+    if not args.quick and RESULT_JSON.is_file():
+        result = json.loads(RESULT_JSON.read_text()).get("parts", {})
+    for part in args.part or PARTS:
+        stamp = {"host": host.describe(), "date": datetime.date.today().isoformat()}
+        result[part] = {**stamp, "particles": PARTICLES, "result": run[part]()}
+        if args.quick:
+            continue
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        RESULT_JSON.write_text(json.dumps({"parts": result}, indent=1) + "\n")
+        (RESULTS / "rgbd_scene.md").write_text(markdown(result))
+        print(f"written: {RESULTS / 'rgbd_scene.md'} ({part})", flush=True)
     if args.quick:
         print(markdown(result))
-        return 0
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "rgbd_scene.json").write_text(json.dumps(result, indent=1) + "\n")
-    (RESULTS / "rgbd_scene.md").write_text(markdown(result))
-    print(f"written: {RESULTS / 'rgbd_scene.md'}")
     return 0
 
 

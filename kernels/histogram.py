@@ -74,6 +74,7 @@ __all__ = [
     "window_origin",
     "window_covers",
     "window_ladder",
+    "window_sizes",
     "batch_all",
     "uses_window",
     "suggest_window",
@@ -840,7 +841,7 @@ def rect_reduce(
     reduce_fn,
     *,
     n_bins: int,
-    window: tuple[int, int] | None = None,
+    window: tuple | None = None,
     origin: Array | None = None,
     count_dtype=jnp.uint16,
     fallback: bool = True,
@@ -852,7 +853,9 @@ def rect_reduce(
     rect by ``reduce_fn``: the engine behind every histogram here (module docstring).
 
     Clips the rects, counts them with the windowed integral histogram (``window = (wh,
-    ww)``, exact ``lax.cond`` fallback unless ``fallback=False``) or the full-frame one
+    ww)``, or several windows smallest first, each tried in turn before the grown ones of
+    ``window_ladder``; exact ``lax.cond`` fallback unless ``fallback=False``, which uses
+    the first window) or the full-frame one
     (``window=None``), and applies ``reduce_fn(counts [c, *C, n_bins] float32) -> [c,
     *C, ...]`` (row-wise) chunk by chunk, so that the ``[N, *C, n_bins]`` counts never
     exist at once; a custom ``reduce_fn`` computes several per-box scores in one pass.
@@ -894,7 +897,7 @@ def rect_reduce(
             **options,
         )
         if fallback:
-            placed = _ladder_placements(rects, shape, origin, (fh, fw))
+            placed = _ladder_placements(rects, window, origin, (fh, fw))
             branches = [fast] + [
                 functools.partial(
                     _window_counts,
@@ -916,10 +919,20 @@ def rect_reduce(
     return out
 
 
+def window_sizes(window) -> tuple[tuple[int, int], ...]:
+    """A ``window`` argument as its static windows, smallest first: one ``(h, w)``, or a
+    tuple of them (``rect_reduce``'s ladder starts with them all)."""
+    if isinstance(window[0], (tuple, list)):
+        return tuple((int(h), int(w)) for h, w in window)
+    return ((int(window[0]), int(window[1])),)
+
+
 def _window_placement(rects, window, origin, frame_shape):
-    """The static window shape (capped at the frame) and its origin (default: the rects')."""
+    """The static shape of the first window (capped at the frame) and its origin (default:
+    the rects')."""
     fh, fw = frame_shape
-    shape = (min(window[0], fh), min(window[1], fw))
+    first = window_sizes(window)[0]
+    shape = (min(first[0], fh), min(first[1], fw))
     if origin is None:
         origin = window_origin(rects, shape, (fh, fw))
     return shape, jnp.asarray(origin, jnp.int32)
@@ -928,7 +941,7 @@ def _window_placement(rects, window, origin, frame_shape):
 def uses_window(
     frame_shape: tuple[int, int],
     rects: Array,
-    window: tuple[int, int] | None,
+    window: tuple | None,
     origin: Array | None = None,
     count_dtype=jnp.uint16,
 ) -> Array:
@@ -943,22 +956,26 @@ def uses_window(
         return jnp.asarray(False)
     fh, fw = frame_shape
     r, _ = _clipped_columns(rects, fw, fh)
-    shape, origin = _window_placement(r, window, origin, (fh, fw))
-    placed = _ladder_placements(r, shape, origin, (fh, fw))
+    _, origin = _window_placement(r, window, origin, (fh, fw))
+    placed = _ladder_placements(r, window, origin, (fh, fw))
     index = _rung_index(r, placed, _check_count_dtype(count_dtype), vmapped=False)
     return index < len(placed)
 
 
-def window_ladder(
-    window: tuple[int, int], frame_shape: tuple[int, int]
-) -> tuple[tuple[int, int], ...]:
-    """The static windows ``rect_reduce`` tries in turn: ``window`` (capped at the frame),
-    then each side grown by ``LADDER_GROWTH`` (rounded up to 16 px, capped) while the
-    grown window holds less than ``LADDER_MAX_SHARE`` of the frame, at most
-    ``LADDER_RUNGS`` windows; past the last one the whole-frame path counts."""
+def window_ladder(window, frame_shape: tuple[int, int]) -> tuple[tuple[int, int], ...]:
+    """The static windows ``rect_reduce`` tries in turn: the windows of ``window`` (one
+    ``(h, w)`` or several, smallest first; capped at the frame), then the last one's sides
+    grown by ``LADDER_GROWTH`` (rounded up to 16 px, capped) while the grown window holds
+    less than ``LADDER_MAX_SHARE`` of the frame, at most ``LADDER_RUNGS - 1`` times; past
+    the last one the whole-frame path counts."""
     fh, fw = frame_shape
-    rungs = [(min(window[0], fh), min(window[1], fw))]
-    while len(rungs) < LADDER_RUNGS:
+    rungs = []
+    for h, w in window_sizes(window):
+        capped = (min(h, fh), min(w, fw))
+        if capped not in rungs:
+            rungs.append(capped)
+    given = len(rungs)
+    while len(rungs) < given + LADDER_RUNGS - 1:
         h, w = rungs[-1]
         grown = (
             min(math.ceil(h * LADDER_GROWTH / 16) * 16, fh),
@@ -970,10 +987,10 @@ def window_ladder(
     return tuple(rungs)
 
 
-def _ladder_placements(rects, shape, origin, frame_shape) -> list[tuple[tuple[int, int], Array]]:
-    """``(window, origin)`` of each window of ``window_ladder(shape)``: the first at
+def _ladder_placements(rects, window, origin, frame_shape) -> list[tuple[tuple[int, int], Array]]:
+    """``(window, origin)`` of each window of ``window_ladder(window)``: the first at
     ``origin``, the others at their own ``window_origin`` of the clipped ``rects``."""
-    rungs = window_ladder(shape, frame_shape)
+    rungs = window_ladder(window, frame_shape)
     return [(rungs[0], origin)] + [(r, window_origin(rects, r, frame_shape)) for r in rungs[1:]]
 
 
@@ -1010,18 +1027,16 @@ def _scatter_counts(bins: Array, rects: Array, n_bins: int) -> Array:
     return jax.vmap(one)(flat_rects).reshape(rects.shape[:-1] + (n_bins,))
 
 
-def box_histograms(
-    bins: Array, rects: Array, n_bins: int, window: tuple[int, int] | None = None
-) -> Array:
+def box_histograms(bins: Array, rects: Array, n_bins: int, window: tuple | None = None) -> Array:
     """Exact histograms ``[N, n_bins] float32`` of ``rects [N, 4] (x0, y0, x1, y1) int32``.
 
     General, simple path for any rect list (clipped, empty, outside, larger than the
     frame). Up to ``SCATTER_MAX_RECTS`` rects (a static count) are counted by a masked
-    scatter-add each: over a static ``window = (h, w)`` placed on the rects when it covers
-    them (``window_origin``, ``window_covers``), else over the frame; the two give the
-    same counts, and a window a sixth of the frame costs a sixth. More rects are counted
-    by the full-frame integral histogram (``rect_reduce`` with ``window=None``).
-    ``n_bins`` is static.
+    scatter-add each: over the first static window of ``window`` (one ``(h, w)`` or
+    several, smallest first) that covers them, placed on them (``window_origin``,
+    ``window_covers``), else over the frame; all give the same counts, and a window a
+    sixth of the frame costs a sixth. More rects are counted by the full-frame integral
+    histogram (``rect_reduce`` with ``window=None``). ``n_bins`` is static.
     """
     rects = jnp.asarray(rects, jnp.int32)
     n_rects = math.prod(rects.shape[:-1])
@@ -1029,17 +1044,26 @@ def box_histograms(
         return rect_reduce(bins, rects, lambda counts: counts, n_bins=n_bins)
     fh, fw = bins.shape
     rects = clip_rect(rects, fw, fh)
-    if window is None or (min(window[0], fh), min(window[1], fw)) == (fh, fw):
+    shapes = []
+    for h, w in window_sizes(window) if window is not None else ():
+        shape = (min(h, fh), min(w, fw))
+        if shape != (fh, fw) and shape not in shapes:
+            shapes.append(shape)
+    if not shapes:
         return _scatter_counts(bins, rects, n_bins)
-    shape, origin = _window_placement(rects, window, None, (fh, fw))
+    placed = [(shape, window_origin(rects, shape, (fh, fw))) for shape in shapes]
 
-    def in_window(_):
-        crop = lax.dynamic_slice(bins, (origin[0], origin[1]), shape)
-        shift = jnp.stack([origin[1], origin[0], origin[1], origin[0]])
-        return _scatter_counts(crop, rects - shift, n_bins)
+    def in_window(shape, origin):
+        def count(_):
+            crop = lax.dynamic_slice(bins, (origin[0], origin[1]), shape)
+            shift = jnp.stack([origin[1], origin[0], origin[1], origin[0]])
+            return _scatter_counts(crop, rects - shift, n_bins)
 
-    covered = batch_all(window_covers(rects, origin, shape, count_dtype=jnp.int32))
-    return lax.cond(covered, in_window, lambda _: _scatter_counts(bins, rects, n_bins), None)
+        return count
+
+    index = _rung_index(rects, placed, jnp.int32)
+    branches = [in_window(shape, origin) for shape, origin in placed]
+    return lax.switch(index, [*branches, lambda _: _scatter_counts(bins, rects, n_bins)], None)
 
 
 # ----------------------------------------------------------------------------- distances

@@ -50,6 +50,9 @@ __all__ = [
 ]
 
 
+_MISS = 2**30  # cell index of a point outside the image (dropped by the scatter)
+
+
 def spin_coordinates(points: Array, p: Array, n: Array) -> tuple[Array, Array]:
     """``(alpha, beta)`` of ``points [..., 3]`` in the spin map of the oriented point ``(p, n)``.
 
@@ -102,10 +105,12 @@ def _spin_one(
     i0 = jnp.floor(b)
     fa = a - j0
     fb = b - i0
-    idx = jnp.where(inside, i0 * m + j0, m * m).astype(jnp.int32)
+    # Misses (most of the patch lies off the support) get an index past the end: XLA on
+    # CPU skips a dropped update's write, where a dump cell would take every one.
+    idx = jnp.where(inside, i0 * m + j0, _MISS).astype(jnp.int32)
     vals = jnp.stack([(1 - fb) * (1 - fa), (1 - fb) * fa, fb * (1 - fa), fb * fa], -1)
-    # One scatter of 4-vectors into the (width-1)^2 cells (one dump row for misses) ...
-    h4 = jnp.zeros((m * m + 1, 4), jnp.float32).at[idx].add(vals)[:-1].reshape(m, m, 4)
+    # One scatter of 4-vectors into the (width-1)^2 cells ...
+    h4 = jnp.zeros((m * m, 4), jnp.float32).at[idx].add(vals, mode="drop").reshape(m, m, 4)
     # ... then each corner histogram is shifted into place.
     img = (
         jnp.pad(h4[..., 0], ((0, 1), (0, 1)))

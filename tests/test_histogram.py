@@ -494,6 +494,36 @@ def test_window_ladder_counts_a_cloud_wider_than_the_window_on_a_grown_window(fr
     assert "stablehlo.case" in text
 
 
+def test_several_windows_are_tried_smallest_first_and_count_exactly(frames):
+    # window=(small, window): the ladder is the small window, the window, then the window
+    # grown; each cloud is counted exactly on the first that holds it, under jit and vmap.
+    _, hsvs, bins = frames
+    small = (48, 64)
+    windows = (small, WINDOW)
+    assert H.window_sizes(windows) == (small, WINDOW) and H.window_sizes(WINDOW) == (WINDOW,)
+    assert H.window_ladder(windows, (FH, FW)) == (small, (96, 128), (160, 208))
+    assert H.window_ladder((WINDOW, WINDOW), (FH, FW)) == H.window_ladder(WINDOW, (FH, FW))
+    tight = _cloud_rects(7, n=12, size=(20, 24), spread=2.0)[1]  # inside 48 x 64
+    fits = _cloud_rects(1, n=12)[1]  # leaves 48 x 64, inside 96 x 128
+    leaves = np.concatenate([_cloud_rects(4, n=11)[1], [[0, 100, FW, 140]]])
+    assert _origin_and_covers(tight, small)[1] and not _origin_and_covers(fits, small)[1]
+    for rects in (tight, fits, leaves):
+        reached = bool(H.uses_window((FH, FW), jnp.asarray(rects), windows))
+        assert reached == bool(H.uses_window((FH, FW), jnp.asarray(rects), WINDOW))
+    f = functools.partial(H.rect_reduce, reduce_fn=_identity, n_bins=NB, window=windows)
+    check_kernel(
+        lambda b, r: f(b, r),
+        lambda b, r: _ref_hists(hsvs[0], r),
+        (bins[0], tight),
+        batch=[(bins[0], tight), (bins[0], fits), (bins[0], leaves)],
+        **EXACT,
+    )
+    # box_histograms scatters over the first given window that holds its few rects.
+    few = jax.jit(lambda b, r: H.box_histograms(b, r, NB, windows))
+    for rects in (tight[:4], fits[:4], leaves[-4:]):
+        np.testing.assert_array_equal(np.asarray(few(bins[0], rects)), _ref_hists(hsvs[0], rects))
+
+
 def test_uint16_limit_falls_back_and_int32_table_stays_fast(frames):
     _, hsvs, bins = frames
     # 100 x 96 = 9,600 px fits uint16; make the window big and a rect of >= 65,536 px.

@@ -23,11 +23,11 @@ a synthetic scenario's head, hands and feet; ``auto``: head, hands and feet foun
 on the body in the start box, :func:`cpf_jax.cascade.find_body_points`, which
 pairs with ``--init auto``; or ``x,y;x,y;...`` pixels of the start frame) tracked
 in depth inside every layer-1 box, on the pixels nearer than the background model or,
-without background frames, than the frame's own scene. The CSV gains ``<point>_x,
-<point>_y`` (pixels), ``<point>_X_mm, _Y_mm, _Z_mm`` (camera millimetres) and
-``<point>_hidden`` (1: hidden, at its predicted place) columns, the Rerun log the 2D and
-3D points, and on a synthetic scenario (``joints``, or ``auto``: each point against the
-joint it stands for) the summary gives each point's median 2D and 3D error.
+when layer 1 is the RGB-D filter without background frames, than the frame's own scene.
+The CSV gains ``<point>_x, <point>_y`` (pixels), ``<point>_X_mm, _Y_mm, _Z_mm`` (camera
+millimetres) and ``<point>_hidden`` (1: hidden, at its predicted place) columns, the Rerun
+log the 2D and 3D points, and on a synthetic scenario (``joints``, or ``auto``: each point
+against the joint it stands for) the summary gives each point's median 2D and 3D error.
 
 Live sources (``realsense[:serial]``, ``kinect2[:serial]``, a RealSense ``.bag``/``.db3``) are
 read once, in order: ``--init`` is required (a box, or ``auto``: the first frame where
@@ -39,6 +39,11 @@ however it ends. The Rerun log goes to ``--rrd FILE``,
 a new viewer (``--spawn``) or a running one (``--connect URL``, checked before tracking;
 a viewer that goes away during the run fails it with exit 2 once the CSV, ``.rrd``, plot and
 summary are written).
+``--multi`` tracks every person instead of one (``cpf_jax.multi``, :mod:`cpf_jax.cli.multi`):
+no ``--init``, and a background model (``--background none`` takes ``auto``'s quiet
+frames there); ``--mot FILE`` writes MOTChallenge lines as it goes, ``--mot-gt FILE``
+scores the run, and the Rerun log shows each identity in its own colour with its births,
+losses and deaths as text events.
 ``--plot FILE.png`` draws the run (IoU and ESS / N per frame, the success plot, the body
 points' 3D errors when they are scored) at its end, or when it is interrupted.
 
@@ -179,6 +184,12 @@ def _run(args: argparse.Namespace) -> int:
         except OSError as e:
             raise UsageError(f"--plot {args.plot}: cannot create its folder ({e})") from None
 
+    if args.multi:
+        from cpf_jax.cli.multi import check_multi_options
+
+        check_multi_options(args)
+    elif args.mot or args.mot_gt:
+        raise UsageError("--mot and --mot-gt go with --multi")
     options = model_options(args)  # a bad option fails before any frame is read
 
     from cpf_jax.io import open_source
@@ -190,6 +201,10 @@ def _run(args: argparse.Namespace) -> int:
 
 def _track(args: argparse.Namespace, source, options) -> int:
     """Inputs, model, the tracking loop, then the plot and the summary."""
+    if args.multi:
+        from cpf_jax.cli.multi import track_multi
+
+        return track_multi(args, source, options)
     inputs = open_inputs(args, source)
     model = build_model(args, source, inputs, options)
     results, viewer_error = track(args, source, inputs, model)

@@ -53,9 +53,11 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     uses_depth = args.model != "rgb" or args.points is not None or auto
     register = _registrar(calib, uses_depth=uses_depth)
     # A background model: the RGB-D models' foreground (unless each frame is its own
-    # scene, --background none), and --init auto's person finder.
-    frameless = args.background == FRAMELESS
-    need_bg = (args.model != "rgb" and not frameless) or auto
+    # scene, --background none), --init auto's person finder and --multi's births (with
+    # --background none, the quiet frames of --background auto).
+    multi = getattr(args, "multi", False)
+    frameless = args.background == FRAMELESS and not multi
+    need_bg = (args.model != "rgb" and not frameless) or auto or multi
     note = None
     if live:
         start, box, bg_frames, frames = _open_live(args, source, register, need_bg, auto)
@@ -72,7 +74,8 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
         start, first = next(frames)
     except StopIteration:
         raise UsageError(f"{source.describe()}: no frame to track") from None
-    check_box(box, source.size, source.describe())
+    if box is not None or not multi:
+        check_box(box, source.size, source.describe())
     if not live and source.gt_boxes is not None:
         check_groundtruth(source.gt_boxes, source.visible, source.size, source.describe())
     _check_colour(source, start, first)
@@ -237,7 +240,7 @@ def _start_and_box(
     recording (finite source)."""
     if args.start is not None and not 0 <= args.start < n_frames:
         raise UsageError(f"--start {args.start} is outside 0..{n_frames - 1}")
-    if auto:
+    if auto or getattr(args, "multi", False):  # the first frame found, or births
         return (0 if args.start is None else args.start), None
     start = source.first_visible if args.init is None else 0
     if args.start is not None:
@@ -271,11 +274,12 @@ def _open_live(args: argparse.Namespace, source, register, need_bg: bool, auto: 
     ``box`` is None with ``--init auto``.
     """
     where = source.describe()
-    if args.init is None:
+    multi = getattr(args, "multi", False)
+    if args.init is None and not multi:
         raise UsageError(
             f"{where}: a live source has no ground truth; give --init x,y,w,h or --init auto"
         )
-    box = None if auto else parse_box(args.init)
+    box = None if auto or multi else parse_box(args.init)
     mode = "auto" if args.background == FRAMELESS else args.background  # the finder's
     bg = parse_live_background(mode) if need_bg else (0, 0)
     start = bg[1] if args.start is None else args.start

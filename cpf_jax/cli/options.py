@@ -357,6 +357,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--point-particles", type=int, default=100, help="particles per body point (--points)"
     )
+    p.add_argument(
+        "--multi",
+        action="store_true",
+        help="track every person (cpf_jax.multi): people are found by the person detector "
+        "against the --background model (none, the default, means auto here: a static "
+        "camera's emptiest frames), confirmed, kept through crossings and re-entries "
+        "under one identity each; an RGB-D model (grid-occlusion unless --model names one); "
+        "no --init",
+    )
+    p.add_argument(
+        "--mot",
+        metavar="FILE",
+        help="--multi: write MOTChallenge lines frame,id,x,y,w,h,conf,-1,-1,-1 (1-based "
+        "frames and pixels) as the run goes",
+    )
+    p.add_argument(
+        "--mot-gt",
+        metavar="FILE",
+        help="--multi: score the run against this MOTChallenge ground truth "
+        "(frame,id,x,y,w,h[,active,class,visibility]): MOTA, MOTP, IDF1, HOTA, id switches",
+    )
+    p.add_argument(
+        "--max-people", type=int, default=6, help="--multi: people tracked at once (slots)"
+    )
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(

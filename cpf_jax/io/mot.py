@@ -18,9 +18,10 @@ from cpf_jax.errors import SourceError
 __all__ = ["read_mot", "MotWriter"]
 
 
-def read_mot(path: Path | str) -> np.ndarray:
+def read_mot(path: Path | str, truth: bool = False) -> np.ndarray:
     """``[K, 7]`` rows of a MOTChallenge file (0-based frames and pixels; ``conf`` 1 when the
-    file has no seventh column).
+    file has no seventh column); with ``truth``, ``[K, 9]`` rows of a ground-truth file
+    ``(frame, id, x, y, w, h, active, class, visibility)``, each missing column 1.
 
     Raises:
       SourceError: naming the file and line of a line that is not 6 or more numbers.
@@ -40,8 +41,9 @@ def read_mot(path: Path | str) -> np.ndarray:
             fields = []
         if len(fields) < 6:
             raise SourceError(f"{path}:{n}: expected 'frame,id,x,y,w,h[,conf,...]', got {line!r}")
-        rows.append([*fields[:6], fields[6] if len(fields) > 6 else 1.0])
-    out = np.asarray(rows, np.float64).reshape(-1, 7)
+        n = 9 if truth else 7
+        rows.append([*fields[:n], *([1.0] * (n - len(fields[:n])))])
+    out = np.asarray(rows, np.float64).reshape(-1, 9 if truth else 7)
     out[:, [0, 2, 3]] -= 1.0
     return out
 

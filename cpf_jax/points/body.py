@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 from jax import Array, lax
 
@@ -170,10 +169,10 @@ def _geodesics(config: PointConfig, w: Array, body: Array, ref_pix: Array) -> tu
         & (jnp.arange(shape[1])[None, None, :] == ref_pix[:, 1, None, None])
         & body
     )
-    geo, sweeps = jax.vmap(
-        lambda s_: gk.geodesic_distances(w, s_, config.max_sweeps, return_sweeps=True)
-    )(src)
-    return geo, jnp.max(sweeps)
+    # One relaxation per reference (R is small and static) rather than a vmap: unbatched,
+    # the relaxation skips its last up sweep once a down sweep changes nothing.
+    runs = [gk.geodesic_distances(w, s_, config.max_sweeps, return_sweeps=True) for s_ in src]
+    return jnp.stack([g for g, _ in runs]), jnp.max(jnp.stack([k for _, k in runs]))
 
 
 class Segmentation(NamedTuple):
@@ -306,13 +305,19 @@ def pixel_centre(bm: BodyModel, rc: Array) -> Array:
 
 def surface_depth(config: PointConfig, bm: BodyModel, xy: Array) -> Array:
     """``[...]`` mm: the body's depth under frame positions ``xy [..., 2]`` (the nearest body
-    pixel's off the body; 0 without a body)."""
+    pixel's off the body; 0 without a body). The search for the nearest body pixel, a pass
+    over the window per position, runs only when some position is off the body
+    (``lax.cond``)."""
     rc, inside = window_pixels(bm, xy, config.window)
     on = inside & bm.body[rc[..., 0], rc[..., 1]]
-    ji = dk.frame_to_window(bm.window, xy)
-    near, found = dk.nearest_true(bm.body, jnp.stack([ji[..., 1], ji[..., 0]], -1))
-    rc = jnp.where(on[..., None], rc, near)
-    return jnp.where(found, bm.depth[rc[..., 0], rc[..., 1]], 0.0)
+
+    def nearest(rc_):
+        ji = dk.frame_to_window(bm.window, xy)
+        near, _ = dk.nearest_true(bm.body, jnp.stack([ji[..., 1], ji[..., 0]], -1))
+        return jnp.where(on[..., None], rc_, near)
+
+    rc = lax.cond(jnp.all(on), lambda rc_: rc_, nearest, rc)
+    return jnp.where(jnp.any(bm.body), bm.depth[rc[..., 0], rc[..., 1]], 0.0)
 
 
 def ray_point(intrinsics, xy: Array, z: Array, offset: Array) -> Array:

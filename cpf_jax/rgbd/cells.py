@@ -212,10 +212,9 @@ def cell_terms(
         _colour_stats, params.body, sqrt_q, body_template, vis_states, config.n_fg_bins
     )
     depth_stats = functools.partial(_depth_stats, near_thr, (nz, zlo, zhi))
-    cs = rect_reduce(
-        obs.colour_bins, rects, colour_stats, n_bins=config.n_bins, window=config.window
-    )
-    ds = rect_reduce(obs.depth_bins, rects, depth_stats, n_bins=nz, window=config.window)
+    windows = config.count_windows
+    cs = rect_reduce(obs.colour_bins, rects, colour_stats, n_bins=config.n_bins, window=windows)
+    ds = rect_reduce(obs.depth_bins, rects, depth_stats, n_bins=nz, window=windows)
     if config.border > 0:
         l_border, strip_ratio = border_terms(config, params, obs, boxes_xywh, mu, margin)
     else:
@@ -255,5 +254,5 @@ def cell_terms(
         l_border=l_border,
         border_ratio=strip_ratio,
         l_body=l_body,
-        windowed=uses_window((height, width), rects, config.window),
+        windowed=uses_window((height, width), rects, windows),
     )

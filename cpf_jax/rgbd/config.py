@@ -17,6 +17,8 @@ VARIANTS = ("rgbd", "grid", "grid-occlusion")
 #: What ``info.box`` is (``cpf_jax.rgbd.report``).
 REPORTS = ("pixels", "cells", "box")
 TRANSITIONS = ("auto", "full", "factorised")
+#: ``RGBDConfig.with_window``'s growth of the first window over the initial box.
+FIRST_WINDOW_GROWTH = 1.1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +38,10 @@ class RGBDConfig:
     min_size: float = 8.0
     init_spread: float = 0.0
     window: tuple[int, int] | None = None
+    # A smaller window the cells' counts try before ``window`` (None: none): a table costs
+    # its pixels, and one frame's cloud fits a window near the box's size while ``window``
+    # must also hold the target as it grows. Counts are exact through either.
+    first_window: tuple[int, int] | None = None
     tau_height: float | None = 200.0
     aspect_prior: bool = True
     template_update: bool = True  # eq. 7-8 in the cells voted visible
@@ -166,10 +172,29 @@ class RGBDConfig:
         """The colour bins of foreground pixels (``n_bins`` without the background bin)."""
         return n_bins_of(self.bins)
 
+    @property
+    def count_windows(self) -> tuple | None:
+        """The windows the cells' counts try in turn (``kernels.histogram.rect_reduce``)."""
+        if self.window is None or self.first_window is None:
+            return self.window
+        return (self.first_window, self.window)
+
     def with_window(
-        self, box_wh: tuple[float, float], frame_hw: tuple[int, int], growth: float = 1.5
+        self,
+        box_wh: tuple[float, float],
+        frame_hw: tuple[int, int],
+        growth: float = 1.5,
+        first_growth: float | None = FIRST_WINDOW_GROWTH,
     ) -> RGBDConfig:
-        """This config with a histogram window for a box of ``box_wh`` grown by ``growth``."""
+        """This config with a histogram window for a box of ``box_wh`` grown by ``growth``,
+        and a first window for it grown by ``first_growth`` (None: none); both hold the
+        spread of ``n_particles`` centres at 10 px (``suggest_window``)."""
+        hw = (int(frame_hw[0]), int(frame_hw[1]))
         w, h = (float(v) * growth for v in box_wh)
-        window = suggest_window((w, h), 10.0, (int(frame_hw[0]), int(frame_hw[1])))
-        return dataclasses.replace(self, window=window)
+        window = suggest_window((w, h), 10.0, hw)
+        first = None
+        if first_growth is not None:
+            fw, fh = (float(v) * first_growth for v in box_wh)
+            first = suggest_window((fw, fh), 10.0, hw, n_particles=self.n_particles)
+            first = None if first[0] * first[1] >= window[0] * window[1] else first
+        return dataclasses.replace(self, window=window, first_window=first)

@@ -77,8 +77,8 @@ def cell_statistics(
     the depth histogram) and depth sample counts ``[C]`` of one box's cells, counted in the
     histogram window when it holds the box."""
     rects = box_ops.xywh_to_rect(grid_cells(box_xywh, config.k))
-    hist = box_histograms(obs.colour_bins, rects, config.n_bins, config.window)
-    dh = box_histograms(obs.depth_bins, rects, config.depth_bins, config.window)
+    hist = box_histograms(obs.colour_bins, rects, config.n_bins, config.count_windows)
+    dh = box_histograms(obs.depth_bins, rects, config.depth_bins, config.count_windows)
     med, total = histogram_quantile(dh, config.depth_bins, *config.depth_range)
     return normalise_counts(hist), med, total
 
@@ -86,7 +86,7 @@ def cell_statistics(
 def body_histogram(config: RGBDConfig, obs: Observation, box_xywh: Array) -> tuple[Array, Array]:
     """Normalised foreground colour histogram ``[B - 1]`` of one box and its pixel count."""
     rect = box_ops.xywh_to_rect(box_xywh)[None]
-    hist = box_histograms(obs.colour_bins, rect, config.n_bins, config.window)[0]
+    hist = box_histograms(obs.colour_bins, rect, config.n_bins, config.count_windows)[0]
     fg = hist[: config.n_fg_bins]
     total = jnp.sum(fg)
     return fg / jnp.maximum(total, 1.0), total

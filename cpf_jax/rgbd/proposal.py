@@ -418,16 +418,28 @@ def detector_mixture(
     sigma = det_p.fast_sigma * fast_length(reach, t.depth, state.estimate[3]) * spread
     ref_wh = jnp.maximum(state.estimate[2:4], config.min_size)
     log_map, available, fit = detector_log_map(config, det_p, pixels, ref_wh, centre, sigma)
-    det = detector_draw(k_draw, config, log_map, shape, ref_wh, n)
     # Draw from the detector only when the prediction misses (a choice made from the data
     # before drawing: the weights stay exact), and neither it nor the fast component while
     # the target is voted occluded.
     active = state.occlusion.occluded_frames == 0
     alpha = jnp.where(active & available & (fit < det_p.need), config.detector_fraction, 0.0)
-    use = jax.random.uniform(jax.random.fold_in(k_draw, 1), (n,)) < alpha
-    cols = jnp.array([0, 1, 4, 5]) if sizes else jnp.array([0, 1])
-    box = jnp.where(use[:, None], det if sizes else det[:, :2], particles[:, cols])
-    particles = particles.at[:, cols].set(box)
+
+    def mixed():
+        det = detector_draw(k_draw, config, log_map, shape, ref_wh, n)
+        use = jax.random.uniform(jax.random.fold_in(k_draw, 1), (n,)) < alpha
+        cols = jnp.array([0, 1, 4, 5]) if sizes else jnp.array([0, 1])
+        box = jnp.where(use[:, None], det if sizes else det[:, :2], particles[:, cols])
+        moved = particles.at[:, cols].set(box)
+        lq = detector_log_density(
+            config, log_map, shape, ref_wh, moved[:, jnp.array([0, 1, 4, 5])], sizes
+        )
+        return moved, lq
+
+    # With alpha = 0 no box moves and the detector's density is weighted by log 0: the
+    # draws and the density are skipped (a lax.cond), the mixture below is the same.
+    particles, lq_det = jax.lax.cond(
+        alpha > 0, mixed, lambda: (particles, jnp.full((n,), -jnp.inf, jnp.float32))
+    )
     xy, wh = particles[:, :2], particles[:, 4:6]
     lp_motion = motion_position_log_density(
         config, params.motion, cloud.particles, mean, xy, scale, extra
@@ -440,9 +452,6 @@ def detector_mixture(
     lp_fast = _fast_log_density(det_p, xy, mean, wh if sizes else None, mean_wh, length)
     f = jnp.where(active, det_p.fast_fraction, 0.0)
     lp_model = jnp.logaddexp(log_clip(1.0 - f) + lp_motion, log_clip(f) + lp_fast)
-    lq_det = detector_log_density(
-        config, log_map, shape, ref_wh, particles[:, jnp.array([0, 1, 4, 5])], sizes
-    )
     lq = jnp.logaddexp(log_clip(1.0 - alpha) + lp_motion, log_clip(alpha) + lq_det)
     return particles, lp_model - lq
 
@@ -454,7 +463,25 @@ def recovery_draw(
     target is voted occluded a share ``recovery_fraction`` moves onto random foreground
     pixels that may be the target's (anywhere in the box, the last unoccluded size, no
     velocity), the search the paper gets by scattering, aimed at where the target can
-    reappear; by inverse CDF over a ``recovery_stride`` grid (static shapes)."""
+    reappear; by inverse CDF over a ``recovery_stride`` grid (static shapes). The
+    frame-wide search runs only while the target is voted occluded (a ``lax.cond``);
+    otherwise no particle is re-drawn and ``fresh`` is zeros."""
+    n = config.n_particles
+
+    def none():
+        return jnp.zeros((n,), bool), jnp.zeros((n, 8), jnp.float32)
+
+    return jax.lax.cond(
+        state.occlusion.occluded_frames > 0,
+        lambda: _recovery_search(config, params, key, state, obs, depth),
+        none,
+    )
+
+
+def _recovery_search(
+    config: RGBDConfig, params: RGBDParams, key: Array, state, obs: Observation, depth: Array
+) -> tuple[Array, Array]:
+    """``recovery_draw`` while the target is voted occluded."""
     n = config.n_particles
     s = config.recovery_stride
     height, width = depth.shape
@@ -474,8 +501,7 @@ def recovery_draw(
     zero = jnp.zeros((n,), jnp.float32)
     w, h = jnp.full((n,), size[0]), jnp.full((n,), size[1])
     fresh = jnp.stack([px + off[:, 0], py + off[:, 1], zero, zero, w, h, zero, zero], axis=-1)
-    searching = (state.occlusion.occluded_frames > 0) & (total > 0)
-    redraw = (jax.random.uniform(k4, (n,)) < config.recovery_fraction) & searching
+    redraw = (jax.random.uniform(k4, (n,)) < config.recovery_fraction) & (total > 0)
     return redraw, fresh
 
 

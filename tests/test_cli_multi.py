@@ -1,0 +1,108 @@
+"""cpf-track --multi on a recorded folder: MOTChallenge lines as it goes, the scores against
+a MOTChallenge ground truth, the Rerun log's people and events, and the options that do
+not go with it."""
+
+from __future__ import annotations
+
+import cv2
+import pytest
+
+from cpf_jax.cli import main
+from cpf_jax.io.mot import read_mot
+from cpf_jax.synthetic_multi import make_people_sequence, people_truth
+
+EMPTY = 3  # empty frames before the people: the background (--background 0:3)
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    seq = make_people_sequence("two_crossing", 6, n_frames=16)
+    root = tmp_path_factory.mktemp("crossing")
+    (root / "rgb").mkdir()
+    (root / "depth").mkdir()
+    bg_colour, bg_depth = seq.meta["background_colour"], seq.meta["background_depth"]
+    colour = [bg_colour] * EMPTY + list(seq.colour)
+    depth = [bg_depth] * EMPTY + list(seq.depth)
+    for t, (c, d) in enumerate(zip(colour, depth, strict=True)):
+        cv2.imwrite(str(root / "rgb" / f"{t:06d}.png"), cv2.cvtColor(c, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(root / "depth" / f"{t:06d}.png"), d)
+    gt = people_truth(seq)
+    with open(root / "gt.txt", "w") as fh:
+        for f, i, x, y, w, h, _, _, v in gt:
+            fh.write(f"{int(f) + EMPTY + 1},{int(i)},{x + 1:g},{y + 1:g},{w:g},{h:g},1,1,{v:.2f}\n")
+    return root
+
+
+def test_multi_writes_mot_lines_and_scores_them(folder, tmp_path, capsys):
+    mot, rrd = tmp_path / "out.txt", tmp_path / "run.rrd"
+    code = main(
+        [
+            str(folder),
+            "--multi",
+            "--mot",
+            str(mot),
+            "--mot-gt",
+            str(folder / "gt.txt"),
+            "--rrd",
+            str(rrd),
+            "--background",
+            f"0:{EMPTY}",
+            "--particles",
+            "64",
+            "--max-people",
+            "3",
+            "--no-progress",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert code == 0, out
+    lines = mot.read_text().splitlines()
+    assert lines and all(len(line.split(",")) == 10 for line in lines)
+    assert all(line.endswith(",-1,-1,-1") for line in lines)
+    rows = read_mot(mot)
+    assert rows[:, 0].min() >= EMPTY  # nobody in the empty frames
+    assert "MOTA" in out and "id switches" in out
+    mota = float(out.split("MOTA ")[1].split(" %")[0])
+    assert mota > 50.0, out
+    from test_viz import read_rrd
+
+    log = read_rrd(str(rrd))
+    assert "/world/camera/people" in log and "/events" in log
+    texts = [str(r["TextLog:text"][0]) for r in log["/events"]["rows"]]
+    assert any(t.endswith("born") for t in texts), texts
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--multi", "--init", "1,2,3,4"], "do not go with --multi"),
+        (["--multi", "--background", "learn"], "--background expects"),
+        (["--mot", "x.txt"], "go with --multi"),
+        (["--multi", "--max-people", "0"], "--max-people"),
+    ],
+)
+def test_multi_option_errors(folder, capsys, extra, message):
+    assert main([str(folder), *extra]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_multi_reads_the_quiet_frames_under_the_default_background(folder):
+    # --background none (each frame its own scene) is the single-person default; --multi's
+    # births need a background model, so it takes --background auto's quiet frames.
+    from cpf_jax.cli.inputs import open_inputs
+    from cpf_jax.cli.multi import check_multi_options
+    from cpf_jax.cli.options import FRAMELESS, build_parser
+    from cpf_jax.io import open_source
+
+    args = build_parser().parse_args([str(folder), "--multi", "--no-progress"])
+    assert args.background == FRAMELESS
+    check_multi_options(args)
+    with open_source(folder) as source:
+        inputs = open_inputs(args, source)
+        assert inputs.background is not None
+        assert inputs.start == 0
+    single = build_parser().parse_args(
+        [str(folder), "--model", "grid-occlusion", "--init", "1,1,9,9"]
+    )
+    with open_source(folder) as source:
+        assert open_inputs(single, source).background is None
