@@ -19,8 +19,10 @@ with ground-truth joints (``cpf_jax.synthetic``):
   is in front of the trunk (within 150 mm of the torso joint sideways and at
   least 50 mm nearer the camera), the case of thesis Fig. 5.9.
 
-Hidden hands. Every particle carries a visibility flag (``PointConfig.visibility``); a
-point is reported hidden when its hidden particles hold most of the weight. Scored on the
+Hidden hands. Each point carries a hidden flag (``PointConfig.visibility``): with
+"report", a two-state filter on the cloud's likelihoods that leaves the cloud as it is;
+with "particles", a flag on every particle, the point reported hidden when its hidden
+particles hold most of the weight. Scored on the
 generator's visibility (``joint_visible``: the joint's own body part is the nearest surface
 at its pixel): the hand error over the frames where the hand is visible, the share of the
 hidden hand-frames reported hidden and of the visible ones reported hidden (false alarms),
@@ -45,11 +47,19 @@ p90_error_mm, drift_ratio, ...}}`` for the main case, plus the other cases),
 ``depth_points_frames.png`` (tracked points on depth frames).
 
     python experiments/depth_points.py [--frames 200] [--keys 3]
+
+``--train`` runs instead the hidden-point model's parts (``VARIANTS``), each switched on
+alone, on the training seeds (``TRAIN_SEEDS``; the tables above use seed 0, which the
+choice never sees) and writes ``depth_points_train.json`` and ``.md``::
+
+    python experiments/depth_points.py --train --keys 2
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import functools
 import json
 import os
 import time
@@ -126,14 +136,66 @@ def temporal_foreground(seq) -> np.ndarray:
     return np.asarray(mask)
 
 
-def run(seq, method: str, keys: int, foreground=None):
+#: Training seeds of the variants' comparison (seed 0, the tables above, is evaluation).
+TRAIN_SEEDS = (1, 2, 3, 4)
+#: The hidden-point model's parts, each switched on alone over the model without them:
+#: name -> (PointConfig fields, point parameters, cases). "geodesic_max_dist_mm": None is
+#: the surface graph's edges also with a foreground; the hidden particles' motion is the
+#: visible one's unless the variant says otherwise.
+SAME_MOTION = {"motion.hidden_pos_noise": 2.0, "motion.hidden_velocity_decay": 0.5}
+VARIANTS = {
+    "no flags": (dict(visibility="off", geodesic_max_dist_mm=None), {}, tuple(CASES)),
+    "bridge 160 mm": (dict(visibility="off"), {}, ("walk_across_medium",)),
+    "particle flags": (
+        dict(visibility="particles", reacquire=False, geodesic_max_dist_mm=None),
+        SAME_MOTION,
+        ("walk_across_medium",),
+    ),
+    "particle flags + hidden motion": (
+        dict(visibility="particles", reacquire=False, geodesic_max_dist_mm=None),
+        {},
+        ("walk_across_medium",),
+    ),
+    "particle flags + re-acquire": (
+        dict(visibility="particles", reacquire=True, geodesic_max_dist_mm=None),
+        SAME_MOTION,
+        ("walk_across_medium",),
+    ),
+    "points branch (all four)": (dict(visibility="particles", reacquire=True), {}, tuple(CASES)),
+    "report flags": (dict(visibility="report", geodesic_max_dist_mm=None), {}, tuple(CASES)),
+    "report flags + bridge": (dict(visibility="report"), {}, ("walk_across_medium",)),
+}
+
+
+def point_setup(method: str, foreground: bool, config=None, params=None):
+    """The point config and parameters of a run: ``method``'s weighting, ``with_foreground``
+    with a foreground, then the ``config`` fields and ``params`` (path -> value)."""
     cfg = PointConfig(weighting=method)
-    if foreground is not None:
+    if foreground:
         cfg = cfg.with_foreground()
-    filt = build_point_filter(cfg)
-    params = pp.replace(
+    if config:
+        cfg = dataclasses.replace(cfg, **config)
+    prm = pp.replace(
         default_point_params(), "estimate.joint_depth_offset", jnp.asarray(JOINT_OFFSET)
     )
+    for path, value in (params or {}).items():
+        prm = pp.replace(prm, path, jnp.asarray(value, jnp.float32))
+    return cfg, prm
+
+
+@functools.cache
+def _tracker(cfg: PointConfig):
+    """The jitted run of ``cfg``'s point filter over a sequence (one compile per config)."""
+    filt = build_point_filter(cfg)
+    return jax.jit(
+        lambda params, k, frames, start: track(
+            filt, params, k, frames, frames.box[0], Context(points=start)
+        )[1]
+    )
+
+
+def run(seq, method: str, keys: int, foreground=None, config=None, params=None):
+    cfg, params = point_setup(method, foreground is not None, config, params)
     names = list(seq.joint_names)
     idx = [names.index(n) for n in TRACKED]
     start = jnp.asarray(seq.joints2d[0, idx] + 0.5)
@@ -142,12 +204,11 @@ def run(seq, method: str, keys: int, foreground=None):
         jnp.asarray(seq.boxes),
         None if foreground is None else jnp.asarray(foreground),
     )
-    context = Context(points=start)
-    go = jax.jit(lambda k: track(filt, params, k, frames, frames.box[0], context)[1])
+    go = _tracker(cfg)
     out = []
     for k in range(keys):
         t0 = time.perf_counter()
-        info = jax.device_get(go(jax.random.PRNGKey(k)))
+        info = jax.device_get(go(params, jax.random.PRNGKey(k), frames, start))
         out.append((info, time.perf_counter() - t0))
     return out, idx
 
@@ -298,13 +359,93 @@ def figure_frames(seq, infos: dict, path: Path, frames=(10, 60, 110, 160, 199)) 
     cv2.imwrite(str(path), np.concatenate([np.concatenate(tiles, 1), legend], 0))
 
 
+def hand_scores(seq, runs, idx) -> dict:
+    """The visible-hand median, hidden reporting and re-acquisition of ``runs``."""
+    names = list(seq.joint_names)
+    vis = seq.meta["joint_visible"][1:][:, [names.index(h) for h in ("left_hand", "right_hand")]]
+    hands = np.stack([errors(seq, info, idx) for info, _ in runs])[..., list(HANDS)]
+    reported = np.stack([np.asarray(i.hidden)[:, list(HANDS)] for i, _ in runs])
+    out = {"median_error_mm": round(float(np.median(hands)), 1)}
+    out["median_error_visible_mm"] = round(float(np.median(hands[:, vis])), 1)
+    out.update(hidden_scores(hands, reported, vis))
+    return out
+
+
+def train(frames: int, keys: int, names: list[str]) -> None:
+    """The variants of ``VARIANTS`` on the training seeds (combined weighting): writes
+    ``depth_points_train.json`` and ``.md``."""
+    out: dict = {}
+    for case, (kw, use_fg) in CASES.items():
+        seqs = [make_sequence(case, seed=s, n_frames=frames, fps=30.0, **kw) for s in TRAIN_SEEDS]
+        fgs = [temporal_foreground(q) if use_fg else None for q in seqs]
+        for name in names:
+            config, params, cases = VARIANTS[name]
+            if case not in cases:
+                continue
+            per_seed = {}
+            for seed, seq, fg in zip(TRAIN_SEEDS, seqs, fgs, strict=True):
+                runs, idx = run(seq, "combined", keys, fg, config, params)
+                per_seed[seed] = hand_scores(seq, runs, idx)
+                print(case, name, seed, per_seed[seed], flush=True)
+            out.setdefault(case, {})[name] = per_seed
+    out["setup"] = {"seeds": list(TRAIN_SEEDS), "frames": frames, "keys": keys}
+    (RESULTS / "depth_points_train.json").write_text(json.dumps(out, indent=2) + "\n")
+    md = [
+        "# Hidden-point variants on the training seeds (combined weighting)",
+        "",
+        f"Seeds {', '.join(map(str, TRAIN_SEEDS))}, {frames} frames, {keys} keys each; "
+        "ground-truth boxes. Each cell: median hand error over the visible hand-frames (mm); "
+        "the mean over seeds of the per-seed medians last. 'hidden': share of the hidden "
+        "hand-frames reported hidden / of the visible ones reported hidden, pooled over seeds.",
+        "",
+    ]
+    for case in CASES:
+        if case not in out:
+            continue
+        md += [
+            f"## {case}",
+            "",
+            "| variant | "
+            + " | ".join(f"seed {s}" for s in TRAIN_SEEDS)
+            + " | mean | hidden reported hidden / visible reported hidden |",
+            "|---|" + "---:|" * (len(TRAIN_SEEDS) + 2),
+        ]
+        for name, per_seed in out[case].items():
+            vals = [per_seed[s]["median_error_visible_mm"] for s in TRAIN_SEEDS]
+            hid = [per_seed[s]["hidden_reported_share"] for s in TRAIN_SEEDS]
+            w = [per_seed[s]["hidden_hand_frames"] for s in TRAIN_SEEDS]
+            fa = np.mean([per_seed[s]["visible_reported_hidden_share"] for s in TRAIN_SEEDS])
+            tot = sum(w)
+            share = (
+                sum(h * n for h, n in zip(hid, w, strict=True) if h is not None) / tot
+                if tot
+                else None
+            )
+            md.append(
+                f"| {name} | "
+                + " | ".join(f"{v}" for v in vals)
+                + f" | {np.mean(vals):.1f} | {_share(share)} / {_share(float(fa))} |"
+            )
+        md.append("")
+    md.append("Written by `python experiments/depth_points.py --train`.")
+    (RESULTS / "depth_points_train.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--keys", type=int, default=3)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument(
+        "--train", action="store_true", help="the hidden-point variants on the training seeds"
+    )
+    ap.add_argument("--variants", default=",".join(VARIANTS), help="with --train")
     args = ap.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
+    if args.train:
+        train(args.frames, args.keys, args.variants.split(","))
+        return
     load = os.getloadavg()
     report: dict = {}
     curves: dict = {}

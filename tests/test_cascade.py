@@ -26,7 +26,7 @@ from cpf_jax.filter import BOX_INFO_FIELDS, Context, track
 from cpf_jax.io import read_results
 from cpf_jax.kernels.background import median_background
 from cpf_jax.kernels.boxes import iou
-from cpf_jax.points import PointConfig
+from cpf_jax.points import AUTO_POINTS, PointConfig
 from cpf_jax.rgbd import RGBDConfig
 from cpf_jax.synthetic import make_sequence
 from cpf_jax.types import Frame
@@ -353,6 +353,10 @@ def test_cli_points_writes_joints_and_errors(tmp_path, capsys):
     assert med3 and med3[0] < 60.0, captured.out  # mm; measured 19
     rows = list(csv.DictReader(open(auto)))
     assert len(rows) == 3 and "hand_a_x" in rows[0]
+    for r in rows:  # the initial frame's 3D columns too (issue 55), and a hidden flag
+        for name in AUTO_POINTS:
+            assert 1000.0 < float(r[f"{name}_Z_mm"]) < 8000.0, (name, r)
+            assert r[f"{name}_hidden"] in ("0", "1"), (name, r)
     seq = make_sequence("walk_towards", seed=0, n_frames=1)
     head = np.array([float(rows[0]["head_x"]), float(rows[0]["head_y"])])
     assert np.linalg.norm(head - seq.joints2d[0, seq.joint_names.index("head")] - 0.5) < 5.0

@@ -387,23 +387,16 @@ def _occluded(frames):
     return PointFrame(jnp.asarray(depth), jnp.asarray(np.stack([f[1] for f in frames])))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 55: re-shown particles land on body pixels at the hand's geodesic distance "
-    "elsewhere on the figure and take the weight back (the estimate is 33 px off in the last "
-    "hidden frames and 16-26 px off after the hand shows)",
-)
-def test_a_hidden_hand_is_reported_hidden_and_reacquired(sequence):
-    """Ground truth: the hand is hidden in ``HIDDEN``. Threshold: reported hidden from the
-    first of those frames and in at least two of the four (later, re-shown particles that
-    land on body pixels at the hand's geodesic distance can take the weight back), never
-    while visible, and within 5 px of the hand again two frames after it shows; without the
-    visibility flags the hand is never reported hidden."""
+def test_a_hidden_hand_is_reported_hidden_without_moving_its_estimate(sequence):
+    """Ground truth: a board hides the hand in ``HIDDEN``. With ``visibility="report"`` the
+    hand is reported hidden in at least two of those four frames and in none before the
+    board comes, and every estimate is the one the filter without flags makes with the same
+    key (the flag is a report, not part of the cloud); without flags nothing is reported."""
     frames, _ = sequence
     inputs = _occluded(frames)
-    gt = np.stack([f[3]["lh"] for f in frames[1:]])
     hidden_gt = np.isin(np.arange(1, T), list(HIDDEN))
-    for visibility in (True, False):
+    infos = {}
+    for visibility in ("report", "off"):
         cfg = dataclasses.replace(BASE, weighting="geodesic", visibility=visibility)
         filt = build_point_filter(cfg)
         run = jax.jit(
@@ -411,17 +404,47 @@ def test_a_hidden_hand_is_reported_hidden_and_reacquired(sequence):
                 f, default_point_params(), k, inp, inp.box[0], Context(points=p0)
             )[1]
         )
-        info = run(jax.random.PRNGKey(0), inputs, _start(frames))
-        reported = np.asarray(info.hidden)[:, 0]
-        if not visibility:
-            assert not reported.any()
-            continue
-        err = np.linalg.norm(np.asarray(info.mean)[:, 0] - gt, axis=-1)
-        assert reported[min(HIDDEN) - 1] and reported[hidden_gt].sum() >= 2, reported
-        assert not reported[~hidden_gt].any(), reported
-        after = max(HIDDEN) + 2  # frame index t -> row t - 1
-        assert np.all(err[after - 1 :] < 5.0), err
-        assert np.all(err[: min(HIDDEN) - 1] < 5.0), err
+        infos[visibility] = run(jax.random.PRNGKey(0), inputs, _start(frames))
+    reported = np.asarray(infos["report"].hidden)[:, 0]
+    assert reported[hidden_gt].sum() >= 2, reported
+    assert not reported[: min(HIDDEN) - 1].any(), reported
+    assert not np.asarray(infos["off"].hidden).any()
+    np.testing.assert_array_equal(np.asarray(infos["report"].mean), np.asarray(infos["off"].mean))
+    share = np.asarray(infos["report"].hidden_share)
+    assert np.all((share >= 0) & (share <= 1))
+
+
+def test_hidden_evidence_and_update_match_their_formulas_under_jit_and_vmap(sequence):
+    """``hidden_evidence``: log of the cloud-weighted mean of ``exp(hidden_term)`` minus that
+    of ``exp(visible log-weights)``; ``hidden_update``: the Markov prior then Bayes' rule."""
+    cfg = BASE
+    wp, bm, state, xy = _weight_inputs(sequence, cfg)
+    motion = default_point_params().motion
+    rc, inside = pb.window_pixels(bm, xy, cfg.window)
+    z_pred = jnp.asarray([2100.0, 1900.0])
+    prior_lw = jax.nn.log_softmax(jax.random.normal(jax.random.PRNGKey(3), (2, 48)), axis=1)
+    lw_vis = np.asarray(jax.random.normal(jax.random.PRNGKey(4), (2, 48))) - 2.0
+    lw_vis[0, :40] = -np.inf  # most of the first point's particles off the body
+    lh = np.asarray(pf.hidden_term(wp, bm, rc, inside, z_pred))
+    w = np.exp(np.asarray(prior_lw, np.float64))
+    with np.errstate(divide="ignore"):
+        want = np.log((w * np.exp(lh)).sum(1)) - np.log((w * np.exp(lw_vis)).sum(1))
+    got = jax.jit(pf.hidden_evidence, static_argnums=0)(
+        cfg, wp, bm, prior_lw, xy, jnp.asarray(lw_vis), z_pred
+    )
+    np.testing.assert_allclose(np.asarray(got), np.clip(want, -1e30, 1e30), rtol=1e-4, atol=1e-4)
+    got_v = jax.vmap(pf.hidden_evidence, in_axes=(None, None, None, 0, 0, 0, None))(
+        cfg, wp, bm, jnp.stack([prior_lw] * 2), jnp.stack([xy] * 2), jnp.stack([lw_vis] * 2), z_pred
+    )
+    np.testing.assert_allclose(np.asarray(got_v[1]), np.asarray(got), rtol=1e-6)
+    prob, llr = np.array([0.0, 0.3, 0.9]), np.array([0.5, -1.0, 2.0])
+    ph, ps = float(motion.p_hide), float(motion.p_show)
+    prior = prob * (1 - ps) + (1 - prob) * ph
+    post = prior * np.exp(llr) / (prior * np.exp(llr) + 1 - prior)
+    got = jax.vmap(pf.hidden_update, in_axes=(None, 0, 0))(
+        motion, jnp.asarray(prob)[:, None], jnp.asarray(llr)[:, None]
+    )
+    np.testing.assert_allclose(np.asarray(got)[:, 0], post, rtol=1e-5)
 
 
 def test_hidden_term_and_reacquisition_match_their_references_under_jit_and_vmap(sequence):

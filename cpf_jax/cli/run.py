@@ -190,7 +190,7 @@ def _first_row(inputs: Inputs, model: Model, state: Any, ms: float) -> Row:
 
     p2 = np.array(state.points.estimate, np.float32)
     p3 = np.array(estimate_3d(model.config.points, model.params.points, state.points))
-    hidden = np.array(state.points.hidden).mean(axis=1) > 0.5
+    hidden = np.array(state.points.hidden_prob) > 0.5
     return Row(box, False, float(model.n_particles), ms, p2, p3, box, hidden=hidden)
 
 

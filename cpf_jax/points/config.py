@@ -12,11 +12,13 @@ __all__ = [
     "BODY_POINTS",
     "BODY_POINT_DEPTH_OFFSET_MM",
     "REFERENCES",
+    "VISIBILITIES",
     "WEIGHTINGS",
     "PointConfig",
 ]
 
 WEIGHTINGS = ("spin", "geodesic", "combined")
+VISIBILITIES = ("off", "report", "particles")
 #: The body points tracked by default (names of ``SyntheticSequence.joint_names``).
 BODY_POINTS = ("head", "left_hand", "right_hand", "left_foot", "right_foot")
 #: mm from the surface under each of ``BODY_POINTS`` to the joint centre behind it
@@ -74,12 +76,15 @@ class PointConfig:
     # Temporal depth consistency: a particle whose surface depth departs from the
     # predicted depth of its point loses weight (``params.depth_sigma``).
     depth_consistency: bool = True
-    # Each particle carries a visibility flag: a point that self-occlusion or another
-    # surface hides is reported hidden, with its predicted motion, instead of being put on
-    # the surface in front of it (``points.filter.hidden_term``).
-    visibility: bool = True
-    # A particle that shows again is drawn from the body pixels at the point's geodesic
-    # distance from the references near its last estimate (``filter.point_reacquire``).
+    # Hidden points (``points.filter.hidden_term``): "report", a per-point flag filtered
+    # from the cloud's likelihoods (hidden against visible, ``hidden_evidence``), which
+    # leaves the cloud as it is; "particles", a flag on every particle, so that a hidden
+    # point's cloud moves on with its predicted motion instead of onto the surface in front
+    # of it; "off", no flag.
+    visibility: str = "report"
+    # With "particles": a particle that shows again is drawn from the body pixels at the
+    # point's geodesic distance from the references near its last estimate
+    # (``filter.point_reacquire``).
     reacquire: bool = True
     ess_threshold: float = 1.0  # 1.0: resample every frame (SIR)
     resampler: str = "systematic"
@@ -97,6 +102,8 @@ class PointConfig:
             raise ValueError(
                 f"references must be a non-empty tuple of {REFERENCES}, got {self.references!r}"
             )
+        if self.visibility not in VISIBILITIES:
+            raise ValueError(f"visibility must be one of {VISIBILITIES}, got {self.visibility!r}")
         if self.resampler not in rs.SCHEMES:
             raise ValueError(
                 f"resampler must be one of {tuple(rs.SCHEMES)}, got {self.resampler!r}"
@@ -122,6 +129,10 @@ class PointConfig:
             min_component_fraction=0.05,
             geodesic_max_dist_mm=160.0,
         )
+
+    @property
+    def hidden_particles(self) -> bool:
+        return self.visibility == "particles"
 
     @property
     def uses_spin(self) -> bool:

@@ -67,6 +67,8 @@ __all__ = [
     "depth_term",
     "point_weights",
     "hidden_term",
+    "hidden_evidence",
+    "hidden_update",
     "point_recover",
     "point_estimate",
     "point_resample",
@@ -158,6 +160,7 @@ class PointState(NamedTuple):
     estimate: Array  # [P, 2] weighted-mean estimate of the last frame
     depth: Array  # [P] mm, the point's depth: the surface under its last visible estimate
     hidden: Array  # [P, N] bool, each particle's visibility flag (True: hidden)
+    hidden_prob: Array  # [P] posterior probability that the point is hidden
 
 
 class PointInfo(NamedTuple):
@@ -246,6 +249,7 @@ def point_init(
         estimate=start,
         depth=bm.depth[rc[:, 0], rc[:, 1]],
         hidden=jnp.zeros((p, n), bool),
+        hidden_prob=jnp.zeros((p,), jnp.float32),
     )
 
 
@@ -278,7 +282,7 @@ def point_predict(
         ok = (state.box[3] > 0) & (box[3] > 0)
         z_pred = jnp.where(ok, z_pred * state.box[3] / jnp.where(ok, box[3], 1.0), z_pred)
     shown = jnp.zeros_like(hidden)
-    if config.visibility:
+    if config.hidden_particles:
         flip = jax.random.uniform(k_vis, hidden.shape) < jnp.where(
             hidden, _per_point(m.p_show, p), _per_point(m.p_hide, p)
         )
@@ -396,6 +400,37 @@ def hidden_term(params: PointWeightParams, bm: BodyModel, rc, inside, z_pred: Ar
     return jnp.where(in_front, level, -jnp.inf)
 
 
+def hidden_evidence(
+    config: PointConfig,
+    params: PointWeightParams,
+    bm: BodyModel,
+    prior_lw: Array,
+    xy: Array,
+    lw_visible: Array,
+    z_pred: Array,
+) -> Array:
+    """``[P]`` log-likelihood ratio, hidden against visible, of each point's predicted cloud
+    ``xy [P, N, 2]`` (weights ``prior_lw``, normalised): the cloud-averaged ``hidden_term``
+    against the cloud-averaged visible log-weights ``lw_visible`` (``point_weights``), the
+    flag marginalised over the particles' positions. ``+inf`` when no particle can be
+    visible but one can be hidden, ``-inf`` the other way round, ``0`` when neither."""
+    rc, inside = window_pixels(bm, xy, config.window)
+    lh = jax.nn.logsumexp(prior_lw + hidden_term(params, bm, rc, inside, z_pred), axis=1)
+    lv = jax.nn.logsumexp(prior_lw + lw_visible, axis=1)
+    both = jnp.isfinite(lh) | jnp.isfinite(lv)
+    return jnp.where(both, jnp.nan_to_num(lh, neginf=-1e30) - jnp.nan_to_num(lv, neginf=-1e30), 0)
+
+
+def hidden_update(params: PointMotionParams, prob: Array, llr: Array) -> Array:
+    """``[P]`` posterior probability that each point is hidden: the previous ``prob``
+    through the flag's Markov transition (``p_hide``, ``p_show``), then Bayes' rule with
+    the log-likelihood ratio ``llr`` of ``hidden_evidence`` (a two-state forward filter)."""
+    p = prob.shape[0]
+    p_hide, p_show = _per_point(params.p_hide, p)[:, 0], _per_point(params.p_show, p)[:, 0]
+    prior = prob * (1.0 - p_show) + (1.0 - prob) * p_hide
+    return jax.nn.sigmoid(jnp.log(prior) - jnp.log1p(-prior) + jnp.clip(llr, -60.0, 60.0))
+
+
 def point_weights(
     config: PointConfig,
     params: PointWeightParams,
@@ -426,7 +461,7 @@ def point_weights(
     if config.depth_consistency:
         lw = lw + depth_term(params, bm, rc, z_pred)
     lw = jnp.where(on, lw, -jnp.inf)
-    if config.visibility:
+    if config.hidden_particles:
         lw = jnp.where(hidden, hidden_term(params, bm, rc, inside, z_pred), lw)
     return jnp.where(jnp.isnan(lw), -jnp.inf, lw), on, complete
 
@@ -515,19 +550,25 @@ def point_step(
     xy, vel, hidden, shown, prev_est, z_pred = point_predict(
         config, params, (k_pos, k_vel, k_vis), state, box
     )
-    if config.visibility and config.reacquire:
+    if config.hidden_particles and config.reacquire:
         xy, vel = point_reacquire(params, k_acq, bm, state, prev_est, xy, vel, shown)
     lw, on, complete = point_weights(config, params.weights, bm, state, xy, hidden, z_pred)
+    if config.visibility == "report":
+        llr = hidden_evidence(config, params.weights, bm, state.log_weights, xy, lw, z_pred)
+        prob = hidden_update(params.motion, state.hidden_prob, llr)
     xy, vel, hidden, lw, recovered = point_recover(
         params.motion, k_rec, bm, prev_est, xy, vel, hidden, lw
     )
     lw = jax.vmap(rs.normalise_log_weights)(lw)
     ess = jax.vmap(rs.effective_sample_size)(lw)
     mean, best, share, is_hidden = point_estimate(xy, hidden, lw)
+    if config.visibility == "report":
+        share, is_hidden = prob, prob > 0.5
     off = _per_point(params.estimate.joint_depth_offset, p)[:, 0]
     z_mean, z_best = jnp.split(surface_depth(config, bm, jnp.concatenate([mean, best])), 2)
-    # A hidden point keeps its predicted depth: the surface under it is what hides it.
-    z_mean = jnp.where(is_hidden, z_pred, z_mean)
+    if config.hidden_particles:
+        # A hidden point keeps its predicted depth: the surface under it is what hides it.
+        z_mean = jnp.where(is_hidden, z_pred, z_mean)
     carried = jnp.concatenate([xy, vel, hidden[..., None].astype(jnp.float32)], -1)
     carried, lw, resampled = point_resample(config, k_res, lw, carried, recovered)
     new_state = PointState(
@@ -539,6 +580,7 @@ def point_step(
         mean,
         jnp.where(z_mean > 0, z_mean, z_pred),
         carried[..., 4] > 0.5,
+        share,
     )
     info = PointInfo(
         mean=mean,
