@@ -115,9 +115,9 @@ CLI = [
 #: ``CLI`` as a user in the repository's root types it.
 CLI_SHOWN = [
     "../shared/data/ist_piv_rgbd/images1",
-    *CLI[1:3],
+    *CLI[1:4],
     "experiments/calib/ist_piv.json",
-    *CLI[4:],
+    *CLI[5:],
 ]
 
 
