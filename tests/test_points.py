@@ -102,6 +102,8 @@ def test_config_validation():
         PointConfig(references=("knee",))
     with pytest.raises(ValueError):
         PointConfig(n_particles=0)
+    with pytest.raises(ValueError, match="visibility"):
+        PointConfig(visibility=True)  # the modes are named: "off", "report", "particles"
 
 
 def test_init_needs_the_points_in_its_context(sequence):
