@@ -12,7 +12,7 @@ does, and the depth layer works in the colour camera's geometry with its intrins
 
 Segmentation. ``cpf_jax.points.body_model`` (hole filling, floor removal, segmentation,
 surface graph, normals, head/neck split, geodesic distances from the head) runs per frame
-on the hand-checked box in three settings:
+on the hand-checked box in these settings:
 
 * ``thesis``: the thesis's rule as written (largest component of the ``|dz| < 10 mm``
   graph, 15 mm surface edges, no floor removal, no background rule);
@@ -25,6 +25,9 @@ on the hand-checked box in three settings:
 * ``layer+scene``: the same inside the cascade's foreground without background frames
   (``cpf-track``'s default): the depth nearer than the frame's own scene as the RGB-D filter
   reads it when it starts on the box (``cascade.scene_for_layer2``).
+* ``layer+scene, joined``: ``layer+scene`` keeping only the components joined to the one
+  nearest the box's centre through depth steps of at most 160 mm
+  (``PointConfig.joined_max_dz_mm``; not a default: measured here only).
 
 Scored against the **person's foreground**: the foreground pixels inside the hand-checked
 box that belong to the target, i.e. the depth-connected components (neighbours joined when
@@ -346,6 +349,7 @@ def main() -> None:
         "layer": base,
         "layer+fg": base.with_foreground(),
         "layer+scene": base.with_foreground(),
+        "layer+scene, joined": dataclasses.replace(base.with_foreground(), joined_max_dz_mm=160.0),
     }
     models = {k: jax.jit(lambda d, b, f, c=c: body_model(c, d, b, f)) for k, c in settings.items()}
     scene_fg = frame_scene_foreground(base.with_foreground(), gt[FRAMES[0] - 1])
@@ -358,7 +362,7 @@ def main() -> None:
             mask = None
             if name == "layer+fg":
                 mask = jnp.asarray(fg[i])
-            elif name == "layer+scene":
+            elif name.startswith("layer+scene"):
                 mask = scene_fg(jnp.asarray(frames[i][1]), depth, box)
             bm = f(depth, box, mask)
             body = np.asarray(bm.body)

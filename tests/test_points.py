@@ -522,3 +522,24 @@ def test_hidden_term_and_reacquisition_match_their_references_under_jit_and_vmap
     )
     one = reacq(params, keys[1], bm, state, prev, xy, vel, shown)
     np.testing.assert_allclose(np.asarray(both[0][1]), np.asarray(one[0]), atol=1e-4)
+
+
+def test_joined_components_keep_the_person_at_the_box_centre_not_the_one_beside():
+    # A trunk at the window's centre, his arm 120 mm nearer beside it, and another person
+    # 380 mm nearer at the side: with 160 mm joins the body is the trunk and the arm.
+    d = np.full((20, 30), 3000.0, np.float32)
+    d[2:18, 10:20] = 2000
+    d[5:15, 20:23] = 1880
+    d[2:18, 24:29] = 1500
+    cfg = dataclasses.replace(BASE, min_component_fraction=0.05, joined_max_dz_mm=160.0)
+    want = np.zeros(d.shape, bool)
+    want[2:18, 10:20] = want[5:15, 20:23] = True
+    ones = jnp.ones(d.shape, jnp.float32)
+    got = jax.jit(lambda z, b: pb._joined_to_centre(cfg, z, b, ones))(jnp.asarray(d), d < 2500)
+    np.testing.assert_array_equal(np.asarray(got), want)
+    got_v = jax.vmap(lambda z, b: pb._joined_to_centre(cfg, z, b, ones))(
+        jnp.stack([jnp.asarray(d)] * 2), jnp.stack([d < 2500] * 2)
+    )
+    np.testing.assert_array_equal(np.asarray(got_v[1]), want)
+    with pytest.raises(ValueError, match="joined_max_dz_mm"):
+        PointConfig(joined_max_dz_mm=0.0)

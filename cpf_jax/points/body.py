@@ -133,7 +133,21 @@ def _segment(config: PointConfig, d: Array, roi: Array, valid: Array, tscale: Ar
     if config.min_component_fraction is None:
         return gk.largest_component(labels, eligible)
     size = _component_sizes(labels, eligible)
-    return eligible & (size >= config.min_component_fraction * jnp.max(size))
+    body = eligible & (size >= config.min_component_fraction * jnp.max(size))
+    if config.joined_max_dz_mm is None:
+        return body
+    return _joined_to_centre(config, d, body, tscale)
+
+
+def _joined_to_centre(config: PointConfig, d: Array, body: Array, tscale: Array) -> Array:
+    """The pixels of ``body`` joined to its pixel nearest the window's centre (the box's)
+    through edges of at most ``joined_max_dz_mm``: the tracked person's components without
+    the people beside or in front, whose depth steps away from him are larger."""
+    labels = gk.connected_components(gk.pixel_graph(d, body, config.joined_max_dz_mm * tscale))
+    h, w = body.shape
+    centre, found = dk.nearest_true(body, jnp.asarray([[(h - 1) / 2, (w - 1) / 2]]))
+    anchor = labels[centre[0, 0], centre[0, 1]]
+    return body & (labels == anchor) & found[0]
 
 
 def body_centroid(body: Array) -> Array:

@@ -70,6 +70,10 @@ class PointConfig:
     # components with at least f times the largest one's pixels (use with a
     # foreground mask, which has removed the background already).
     min_component_fraction: float | None = None
+    # With ``min_component_fraction``: only the sizeable components joined, through edges of
+    # at most this depth step (mm at ``threshold_depth_mm``), to the one nearest the box's
+    # centre; None: all of them (other people in the box stay in).
+    joined_max_dz_mm: float | None = None
     patch_radius: int = 32  # window pixels visited per spin image (see kernels.spin)
     spin_batch: int = 32  # distinct query pixels per spin-image loop step
     follow_box: bool = True
@@ -110,6 +114,8 @@ class PointConfig:
             )
         if self.min_component_fraction is not None and not 0 < self.min_component_fraction <= 1:
             raise ValueError("min_component_fraction must be in (0, 1] or None")
+        if self.joined_max_dz_mm is not None and self.joined_max_dz_mm <= 0:
+            raise ValueError(f"joined_max_dz_mm must be > 0 or None, got {self.joined_max_dz_mm}")
         if self.geodesic_max_dist_mm is not None and self.geodesic_max_dist_mm <= 0:
             raise ValueError(
                 f"geodesic_max_dist_mm must be > 0 or None, got {self.geodesic_max_dist_mm}"
