@@ -94,6 +94,7 @@ TRAIN_VARIANTS = {
         "reid.depth_speed": 150.0,
         "life.min_evidence": 0.0,
     },
+    "blob evidence": {"config.blob_evidence": True},
     "evidence 0.1": {"life.min_evidence": 0.1},
     "evidence 0.15": {"life.min_evidence": 0.15},
     "evidence 0.2": {"life.min_evidence": 0.2},
@@ -105,7 +106,12 @@ def _config(frame_hw, overrides=None, max_targets: int = 6) -> MultiConfig:
     n = (overrides or {}).get("config.n_particles")
     if n is not None:
         rgbd = dataclasses.replace(rgbd, n_particles=int(n))
-    config = MultiConfig(rgbd=rgbd, max_targets=max_targets)
+    fields = {
+        k.split(".", 1)[1]: v
+        for k, v in (overrides or {}).items()
+        if k.startswith("config.") and k != "config.n_particles"
+    }
+    config = MultiConfig(rgbd=rgbd, max_targets=max_targets, **fields)
     person = (PERSON_SHARE[0] * frame_hw[1], PERSON_SHARE[1] * frame_hw[0])
     return config.with_window(person, frame_hw)
 

@@ -137,6 +137,101 @@ def test_evidence_counts_own_unclaimed_foreground_at_the_targets_depth():
     assert float(alone[1]) > float(claim.evidence(*args)[1]) > 0
 
 
+def _joined_reference(mask, seeds):
+    """SciPy's 4-connected components of each mask holding a seed."""
+    from scipy import ndimage
+
+    out = np.zeros_like(mask)
+    for k in range(mask.shape[0]):
+        labels, _ = ndimage.label(mask[k])
+        hit = np.unique(labels[seeds[k] & mask[k]])
+        out[k] = np.isin(labels, hit[hit > 0])
+    return out
+
+
+def test_joined_is_the_seeded_connected_components():
+    def case(seed):
+        rng = np.random.default_rng(seed)
+        mask = rng.uniform(size=(3, H, W)) < 0.6  # near percolation: winding blobs
+        mask[0] = False
+        mask[0, 4:20, 3:9] = True  # a blob
+        mask[0, 4:20, 10:16] = True  # its neighbour, apart from it
+        mask[0, 12, 7:9] = False  # and a notch
+        seeds = rng.uniform(size=(3, H, W)) < 0.02
+        seeds[0] = False
+        seeds[0, 10, 4] = True
+        return mask, seeds
+
+    args = case(7)
+    check_kernel(
+        lambda m, s: claim.joined(m, s, max_rounds=H * W),
+        _joined_reference,
+        args,
+        batch=[args, case(8)],
+    )
+    got = np.asarray(claim.joined(*args))
+    assert (got[0, 4:20, 3:9] == args[0][0, 4:20, 3:9]).all() and not got[0, :, 10:16].any()
+
+
+def _blob_reach_reference(foreground, depth, owner, z, gate):
+    d = depth.astype(np.float64)
+    near = np.abs(d[None] - z[:, None, None]) < gate[:, None, None]
+    mask = (foreground & (d > 0))[None] & near & (z > 0)[:, None, None]
+    seeds = owner[None] == np.arange(len(z))[:, None, None]
+    return _joined_reference(mask, seeds)
+
+
+def _evidence_blob_loop(foreground, depth, owner, boxes, z, gate):
+    reach = _blob_reach_reference(foreground, depth, owner, z, gate)
+    out = np.zeros(len(z))
+    for k, (x, y, w, h) in enumerate(boxes):
+        n = 0
+        for r in range(H):
+            for c in range(W):
+                inside = x <= c + 0.5 < x + w and y <= r + 0.5 < y + h
+                d = float(depth[r, c])
+                mine = owner[r, c] in (-1, k)
+                theirs = any(reach[j, r, c] for j in range(len(z)) if j != k)
+                mine = mine and (reach[k, r, c] or not theirs)
+                n += inside and foreground[r, c] and d > 0 and abs(d - z[k]) < gate[k] and mine
+        out[k] = n / max(w * h, 1.0) if z[k] > 0 else 0.0
+    return out
+
+
+def test_blob_evidence_leaves_out_the_rest_of_a_claimed_persons_blob():
+    def case(seed):
+        rng = np.random.default_rng(seed)
+        depth, boxes, z, gate, claiming = _scene(rng)
+        depth = np.where(rng.uniform(size=(H, W)) < 0.5, 2100, depth).astype(np.uint16)
+        owner = _owner_loop(depth, boxes, z, gate, claiming)
+        foreground = rng.uniform(size=(H, W)) < 0.8
+        return foreground, depth, owner, boxes, z, gate
+
+    def kernel(foreground, depth, owner, boxes, z, gate):
+        reach = claim.blob_reach(foreground, depth, owner, z, gate)
+        return claim.evidence(foreground, depth, owner, boxes, z, gate, reach)
+
+    args = case(9)
+    check_kernel(kernel, _evidence_blob_loop, args, batch=[args, case(10)])
+    check_kernel(
+        claim.blob_reach, _blob_reach_reference, (args[0], args[1], args[2], args[4], args[5])
+    )
+    # A target that claims nothing (slot 2) beside a blob slot 0 claims at its depth: the
+    # blob is slot 0's person, not its evidence.
+    foreground = np.ones((H, W), bool)
+    depth = np.full((H, W), 3000, np.uint16)
+    depth[:, 12:22] = 2000  # one person at 2 m, columns 12-21
+    boxes = np.array([[12, 0, 4, H], [0, 0, 2, 2], [17, 0, 5, H]], np.float32)
+    z = np.array([2000.0, 0.0, 2000.0], np.float32)
+    gate = np.full(3, 300.0, np.float32)
+    owner = _owner_loop(depth, boxes, z, gate, np.array([True, False, False]))
+    plain = claim.evidence(foreground, depth, owner, boxes, z, gate)
+    reach = claim.blob_reach(foreground, depth, owner, z, gate)
+    blob = claim.evidence(foreground, depth, owner, boxes, z, gate, reach)
+    assert float(plain[2]) == 1.0 and float(blob[2]) == 0.0
+    assert float(blob[0]) == float(plain[0]) == 1.0
+
+
 def _same_place_loop(a, za, ga, b, zb, gb, share):
     out = np.zeros((len(a), len(b)), bool)
     for i in range(len(a)):

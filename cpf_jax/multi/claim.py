@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -40,6 +41,8 @@ __all__ = [
     "claim_owner",
     "slot_depths",
     "claimed_mask",
+    "joined",
+    "blob_reach",
     "evidence",
     "same_place",
     "box_depths",
@@ -135,20 +138,82 @@ def claimed_mask(depth: Array, boxes: Array, z: Array, gate: Array, claiming: Ar
     return jnp.any(mine, axis=0)
 
 
+def _fill_runs(mask: Array, reached: Array) -> Array:
+    """``reached`` grown to every ``mask`` pixel of a run (along the last axis) that holds a
+    reached pixel: a run's pixels carry its index, and a pixel is reached when the nearest
+    reached pixel on its left or on its right carries its own."""
+    start = mask & ~jnp.pad(mask, [(0, 0)] * (mask.ndim - 1) + [(1, 0)])[..., :-1]
+    run = jnp.cumsum(start, axis=-1, dtype=jnp.int32)
+    seed = mask & reached
+    left = jax.lax.cummax(jnp.where(seed, run, -1), axis=mask.ndim - 1)
+    big = jnp.iinfo(jnp.int32).max
+    right = jax.lax.cummin(jnp.where(seed, run, big), axis=mask.ndim - 1, reverse=True)
+    return mask & ((left == run) | (right == run))
+
+
+def joined(mask: Array, seeds: Array, max_rounds: int = 16) -> Array:
+    """``[..., H, W] bool``: the ``mask`` pixels 4-connected within ``mask`` to a ``seeds``
+    pixel (seeds off the mask join nothing). Row runs and column runs are filled in turn
+    until nothing changes (at most ``max_rounds`` rounds of both; a blob reached in fewer
+    turns of its outline is exact)."""
+
+    def fill(reached):
+        rows = _fill_runs(mask, reached)
+        return jnp.swapaxes(
+            _fill_runs(jnp.swapaxes(mask, -1, -2), jnp.swapaxes(rows, -1, -2)), -1, -2
+        )
+
+    def cond(c):
+        reached, last, n = c
+        return jnp.any(reached != last) & (n < max_rounds)
+
+    def body(c):
+        reached, _, n = c
+        return fill(reached), reached, n + 1
+
+    first = mask & seeds
+    reached, _, _ = jax.lax.while_loop(cond, body, (fill(first), first, jnp.int32(1)))
+    return reached
+
+
+def blob_reach(foreground: Array, depth: Array, owner: Array, z: Array, gate: Array) -> Array:
+    """``[K, H, W] bool``: for each target, the ``foreground [H, W]`` pixels within ``gate
+    [K]`` of its depth ``z [K]`` (mm) joined at that depth to the pixels it owns (``owner
+    [H, W]``, ``claim_owner``): one depth-connected blob is one person, so the part of a
+    person that a narrow box leaves unclaimed is still his."""
+    d = depth.astype(jnp.float32)
+    k = jnp.arange(z.shape[0])
+    near = jnp.abs(d[None] - z[:, None, None]) < gate[:, None, None]
+    mask = (foreground & (d > 0))[None] & near & (z > 0)[:, None, None]
+    return joined(mask, owner[None] == k[:, None, None])
+
+
 def evidence(
-    foreground: Array, depth: Array, owner: Array, boxes: Array, z: Array, gate: Array
+    foreground: Array,
+    depth: Array,
+    owner: Array,
+    boxes: Array,
+    z: Array,
+    gate: Array,
+    reach: Array | None = None,
 ) -> Array:
     """``[K]``: the share of each box ``[K, 4]`` (xywh) that its own target explains: the
     ``foreground [H, W]`` pixels within ``gate [K]`` of its depth ``z [K]`` (mm) that no
-    other target owns (``owner [H, W]``, ``claim_owner``). A target whose box holds little
-    of it is not seen, whatever its filter reports: the pixels a nearer target claims are
-    that target's, and the floor or a farther person left in the box are not him."""
+    other target owns (``owner [H, W]``, ``claim_owner``) nor, given ``reach [K, H, W]``
+    (``blob_reach``), joins at its depth without the target joining them too. A target
+    whose box holds little of it is not seen, whatever its filter reports: the pixels a
+    nearer target claims are that target's, the rest of a claimed person's blob is his,
+    and the floor or a farther person left in the box are not him."""
     height, width = depth.shape
     d = depth.astype(jnp.float32)
     rows, cols = _inside(boxes, height, width)
     k = jnp.arange(z.shape[0])
     near = jnp.abs(d[None] - z[:, None, None]) < gate[:, None, None]
     free = (owner[None] < 0) | (owner[None] == k[:, None, None])
+    if reach is not None:
+        n_reach = jnp.sum(reach, axis=0, dtype=jnp.int32)  # [H, W]
+        others = n_reach[None] - reach.astype(jnp.int32)
+        free = free & ((others == 0) | reach)
     own = (foreground & (d > 0))[None] & near & free & (z > 0)[:, None, None]
     count = jnp.einsum(
         "kh,khw,kw->k", rows.astype(jnp.float32), own.astype(jnp.float32), cols.astype(jnp.float32)

@@ -314,8 +314,11 @@ def multi_step(
     obs = observe(config.rgbd, params.rgbd.foreground, frame, state.background)
     # judge
     boxes = union(infos.estimate, infos.box)
+    reach = None
+    if config.blob_evidence:
+        reach = claim.blob_reach(obs.foreground, frame.depth, owner, pred.depth, pred.gate)
     evidence = claim.evidence(
-        obs.foreground, frame.depth, owner, infos.estimate, pred.depth, pred.gate
+        obs.foreground, frame.depth, owner, infos.estimate, pred.depth, pred.gate, reach
     )
     tr, events, found = _judge(config, params, state, infos, obs, boxes, evidence)
     # confirm
