@@ -4,6 +4,10 @@ NumPy loop (plainly, under jit and under vmap where it is a kernel of arrays).""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from checks import check_kernel
@@ -230,6 +234,79 @@ def test_blob_evidence_leaves_out_the_rest_of_a_claimed_persons_blob():
     blob = claim.evidence(foreground, depth, owner, boxes, z, gate, reach)
     assert float(plain[2]) == 1.0 and float(blob[2]) == 0.0
     assert float(blob[0]) == float(plain[0]) == 1.0
+
+
+def _visible_loop(foreground, depth, owner, boxes, z, gate):
+    hidden, shown, tight = np.zeros(len(z)), np.zeros(len(z)), np.zeros((len(z), 4))
+    for k, (x, y, w, h) in enumerate(boxes):
+        front, own = 0, []
+        for r in range(H):
+            for c in range(W):
+                if not (x <= c + 0.5 < x + w and y <= r + 0.5 < y + h):
+                    continue
+                o = owner[r, c]
+                front += bool(o >= 0 and o != k and z[o] < z[k])
+                d = float(depth[r, c])
+                mine = o in (-1, k) and foreground[r, c] and d > 0 and abs(d - z[k]) < gate[k]
+                if mine and z[k] > 0:
+                    own.append((r, c))
+        area = max(w * h, 1.0)
+        hidden[k] = front / area
+        shown[k] = len(own) / max(area * (1 - hidden[k]), 1.0)
+        if own:
+            rs, cs = np.array(own).T
+            tight[k] = (cs.min(), rs.min(), cs.max() + 1 - cs.min(), rs.max() + 1 - rs.min())
+    return claim.Visible(hidden, shown, tight)
+
+
+def test_visible_part_against_a_loop():
+    def case(seed):
+        rng = np.random.default_rng(seed)
+        depth, boxes, z, gate, claiming = _scene(rng)
+        owner = _owner_loop(depth, boxes, z, gate, np.ones(3, bool))
+        foreground = rng.uniform(size=(H, W)) < 0.7
+        return foreground, depth, owner, boxes, z, gate
+
+    args = case(11)
+    check_kernel(claim.visible_part, _visible_loop, args, batch=[args, case(12)], rtol=1e-5)
+    # A man at 3 m behind a woman at 2 m who claims the lower part of his box: his head
+    # shows above her, fills the rest of the box, and is its tight box.
+    foreground = np.ones((H, W), bool)
+    depth = np.full((H, W), 5000, np.uint16)
+    depth[2:8, 10:16] = 3000  # his head
+    depth[8:, 6:20] = 2000  # her, in front of him
+    boxes = np.array([[8, 2, 10, 22], [6, 8, 14, 16]], np.float32)
+    z = np.array([3000.0, 2000.0], np.float32)
+    gate = np.full(2, 300.0, np.float32)
+    owner = _owner_loop(depth, boxes, z, gate, np.array([True, True]))
+    vis = claim.visible_part(foreground, depth, owner, boxes, z, gate)
+    assert float(vis.hidden[0]) == pytest.approx(16 * 10 / 220)
+    assert float(vis.evidence[0]) == pytest.approx(36 / 60)
+    np.testing.assert_array_equal(np.asarray(vis.box[0]), [10, 2, 6, 6])
+    assert float(claim.evidence(foreground, depth, owner, boxes, z, gate)[0]) < 36 / 100
+
+
+def test_coast_moves_hidden_clouds_to_the_predicted_box():
+    from cpf_jax.filter import Cloud
+    from cpf_jax.multi.filter import coast
+
+    class Slots(NamedTuple):
+        cloud: Cloud
+        estimate: np.ndarray
+
+    rng = np.random.default_rng(13)
+    particles = rng.normal(size=(2, 5, 8)).astype(np.float32)
+    slots = Slots(Cloud(particles, particles - 1, np.zeros((2, 5))), np.ones((2, 4), np.float32))
+    slots = jax.tree_util.tree_map(jnp.asarray, slots)
+    box = np.array([[10, 20, 4, 6], [30, 40, 2, 2]], np.float32)
+    out = coast(slots, np.array([True, False]), box)
+    # Centred on the box, its own size.
+    np.testing.assert_allclose(out.estimate[0], [11.5, 22.5, 1, 1], atol=1e-6)
+    np.testing.assert_allclose(
+        out.cloud.particles[0, :, :2] - particles[0, :, :2], [[10.5, 21.5]] * 5
+    )
+    np.testing.assert_allclose(out.cloud.previous[0, :, 2:], particles[0, :, 2:] - 1)
+    np.testing.assert_array_equal(out.cloud.particles[1], particles[1])
 
 
 def _same_place_loop(a, za, ga, b, zb, gb, share):

@@ -44,6 +44,8 @@ __all__ = [
     "joined",
     "blob_reach",
     "evidence",
+    "Visible",
+    "visible_part",
     "same_place",
     "box_depths",
 ]
@@ -188,6 +190,25 @@ def blob_reach(foreground: Array, depth: Array, owner: Array, z: Array, gate: Ar
     return joined(mask, owner[None] == k[:, None, None])
 
 
+def _own_pixels(foreground, depth, owner, z, gate, reach):
+    """``[K, H, W] bool``: each target's own pixels (``evidence``'s docstring)."""
+    d = depth.astype(jnp.float32)
+    k = jnp.arange(z.shape[0])
+    near = jnp.abs(d[None] - z[:, None, None]) < gate[:, None, None]
+    free = (owner[None] < 0) | (owner[None] == k[:, None, None])
+    if reach is not None:
+        n_reach = jnp.sum(reach, axis=0, dtype=jnp.int32)  # [H, W]
+        others = n_reach[None] - reach.astype(jnp.int32)
+        free = free & ((others == 0) | reach)
+    return (foreground & (d > 0))[None] & near & free & (z > 0)[:, None, None]
+
+
+def _count_inside(rows: Array, mask: Array, cols: Array) -> Array:
+    """``[K]``: the ``mask [K, H, W]`` pixels inside each box (``rows [K, H]``, ``cols [K, W]``)."""
+    f = jnp.float32
+    return jnp.einsum("kh,khw,kw->k", rows.astype(f), mask.astype(f), cols.astype(f))
+
+
 def evidence(
     foreground: Array,
     depth: Array,
@@ -204,21 +225,53 @@ def evidence(
     whose box holds little of it is not seen, whatever its filter reports: the pixels a
     nearer target claims are that target's, the rest of a claimed person's blob is his,
     and the floor or a farther person left in the box are not him."""
+    rows, cols = _inside(boxes, *depth.shape)
+    own = _own_pixels(foreground, depth, owner, z, gate, reach)
+    return _count_inside(rows, own, cols) / jnp.maximum(boxes[:, 2] * boxes[:, 3], 1.0)
+
+
+class Visible(NamedTuple):
+    hidden: Array  # [K] share of the box that nearer targets claim
+    evidence: Array  # [K] share of the rest of the box that the target's own pixels fill
+    box: Array  # [K, 4] xywh, the tight box of its own pixels in the box (zeros: none)
+
+
+def visible_part(
+    foreground: Array,
+    depth: Array,
+    owner: Array,
+    boxes: Array,
+    z: Array,
+    gate: Array,
+    reach: Array | None = None,
+) -> Visible:
+    """What of each target shows in its box ``[K, 4]`` (xywh, e.g. the predicted one) under
+    depth-ordered occlusion: the share of the box that the pixels of nearer targets
+    (``owner [H, W]`` at a depth under ``z [K]``) cover, the share of the rest that its own
+    pixels fill (``evidence``'s, with ``reach``), and their tight box. A target behind a
+    nearer one is seen when the part of his box left in view is his: his head above the
+    other's shoulder explains his box as well as his whole body would without her."""
     height, width = depth.shape
-    d = depth.astype(jnp.float32)
     rows, cols = _inside(boxes, height, width)
+    own = _own_pixels(foreground, depth, owner, z, gate, reach)
+    own = own & rows[:, :, None] & cols[:, None, :]
+    z_owner = jnp.where(owner >= 0, z[jnp.maximum(owner, 0)], jnp.inf)  # [H, W]
     k = jnp.arange(z.shape[0])
-    near = jnp.abs(d[None] - z[:, None, None]) < gate[:, None, None]
-    free = (owner[None] < 0) | (owner[None] == k[:, None, None])
-    if reach is not None:
-        n_reach = jnp.sum(reach, axis=0, dtype=jnp.int32)  # [H, W]
-        others = n_reach[None] - reach.astype(jnp.int32)
-        free = free & ((others == 0) | reach)
-    own = (foreground & (d > 0))[None] & near & free & (z > 0)[:, None, None]
-    count = jnp.einsum(
-        "kh,khw,kw->k", rows.astype(jnp.float32), own.astype(jnp.float32), cols.astype(jnp.float32)
-    )
-    return count / jnp.maximum(boxes[:, 2] * boxes[:, 3], 1.0)
+    front = (owner[None] >= 0) & (owner[None] != k[:, None, None])
+    front = front & (z_owner[None] < z[:, None, None])
+    area = jnp.maximum(boxes[:, 2] * boxes[:, 3], 1.0)
+    hidden = _count_inside(rows, front, cols) / area
+    n_own = jnp.sum(own, axis=(1, 2), dtype=jnp.float32)
+    shown = n_own / jnp.maximum(area * (1.0 - hidden), 1.0)
+    r = jnp.any(own, axis=2)  # [K, H]
+    c = jnp.any(own, axis=1)  # [K, W]
+    y0 = jnp.argmax(r, axis=1)
+    y1 = height - jnp.argmax(r[:, ::-1], axis=1)
+    x0 = jnp.argmax(c, axis=1)
+    x1 = width - jnp.argmax(c[:, ::-1], axis=1)
+    box = jnp.stack([x0, y0, x1 - x0, y1 - y0], axis=-1).astype(jnp.float32)
+    box = jnp.where((n_own > 0)[:, None], box, 0.0)
+    return Visible(hidden, shown, box)
 
 
 def same_place(
