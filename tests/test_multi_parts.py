@@ -309,6 +309,15 @@ def test_coast_moves_hidden_clouds_to_the_predicted_box():
     np.testing.assert_array_equal(out.cloud.particles[1], particles[1])
 
 
+def test_coasting_box_takes_the_columns_of_what_shows():
+    from cpf_jax.multi.filter import coasting_box
+
+    predicted = np.array([[100, 30, 90, 240], [10, 10, 20, 40]], np.float32)
+    shown = np.array([[140, 30, 40, 60], [0, 0, 0, 0]], np.float32)
+    got = np.asarray(coasting_box(predicted, shown))
+    np.testing.assert_allclose(got[0], [115, 30, 90, 240])  # centred on column 160
+
+
 def _same_place_loop(a, za, ga, b, zb, gb, share):
     out = np.zeros((len(a), len(b)), bool)
     for i in range(len(a)):

@@ -55,6 +55,7 @@ __all__ = [
     "add_births",
     "union",
     "behind",
+    "coasting_box",
     "coast",
     "people_rows",
     "track_people",
@@ -270,11 +271,20 @@ def multi_init(
 
 def behind(life, status: Array, seen_now: Array, visible: claim.Visible) -> Array:
     """``[K] bool``: confirmed targets not seen by their filters but seen behind nearer
-    targets (``tracks`` module docstring): at least ``life.hidden_share`` of the predicted
-    box is claimed by nearer targets and the target's own pixels fill ``min_evidence`` of
-    the rest."""
+    targets (``tracks`` module docstring): at least ``life.hidden_share`` of the box it
+    claims (``visible``: ``claim.visible_part`` of it) is claimed by nearer targets and
+    the target's own pixels fill ``min_evidence`` of the rest."""
     shown = (visible.evidence >= life.min_evidence) & (visible.box[:, 3] > 0)
     return (status == ACTIVE) & ~seen_now & (visible.hidden >= life.hidden_share) & shown
+
+
+def coasting_box(predicted: Array, shown: Array) -> Array:
+    """``[K, 4]`` xywh: where a target seen behind another is, its ``predicted`` box moved
+    to the columns of what shows of him (``shown``): the head above an occluder's shoulder
+    is over the middle of the body, while the prediction carries the motion of frames
+    before he turned."""
+    cx = shown[:, 0] + 0.5 * shown[:, 2]
+    return predicted.at[:, 0].set(cx - 0.5 * predicted[:, 2])
 
 
 def coast(slots, mask: Array, box: Array):
@@ -347,13 +357,13 @@ def multi_step(
         obs.foreground, frame.depth, owner, infos.estimate, pred.depth, pred.gate, reach
     )
     visible = claim.visible_part(
-        obs.foreground, frame.depth, owner, pred.box, pred.depth, pred.gate, reach
+        obs.foreground, frame.depth, owner, grown, pred.depth, pred.gate, reach
     )
     seen_now = ~infos.lost & (evidence >= params.life.min_evidence)
     hidden = behind(params.life, tr.status, seen_now, visible)
     # A target seen behind another is reported with what shows of him, and coasts.
     infos = infos._replace(box=jnp.where(hidden[:, None], visible.box, infos.box))
-    slots = coast(slots, hidden, pred.box)
+    slots = coast(slots, hidden, coasting_box(pred.box, visible.box))
     state = state._replace(slots=slots)
     boxes = jnp.where(hidden[:, None], visible.box, union(infos.estimate, infos.box))
     tr, events, found = _judge(config, params, state, infos, obs, boxes, seen_now, hidden)

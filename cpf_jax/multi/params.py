@@ -48,7 +48,7 @@ class LifeParams(NamedTuple):
     forget_after: Array  # missed frames in a row after which a lost target dies
     verify_after: Array  # missed frames after which a target found again must look like it
     min_evidence: Array  # least share of its estimate its own unclaimed pixels fill (found)
-    hidden_share: Array  # ... or of the rest of its predicted box, when nearer targets claim this
+    hidden_share: Array  # ... or of the rest of its claim box, when nearer targets claim this
 
 
 class ReidParams(NamedTuple):

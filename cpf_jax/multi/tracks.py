@@ -12,10 +12,11 @@ the thresholds.
   depth that no other target claims); a target hidden behind a nearer one is missed, not
   found on the floor or on a farther person left in its box, so its misses count.
 * A confirmed target that its filter misses is still found when nearer targets claim at
-  least ``hidden_share`` of its predicted box and its own pixels fill ``min_evidence`` of
-  the rest (``claim.visible_part``: his head above the shoulder of the person in front);
-  it is reported with the tight box of what shows of him, and its filter coasts at the
-  predicted place (``filter.coast``).
+  least ``hidden_share`` of the box it claims (its predicted box grown by
+  ``claim.margin``) and its own pixels fill ``min_evidence`` of the rest
+  (``claim.visible_part``: his head above the shoulder of the person in front); it is
+  reported with the tight box of what shows of him, and its filter coasts at the
+  predicted place, in the columns of what shows (``filter.coasting_box``, ``coast``).
 * A tentative target is confirmed after ``confirm`` found frames in a row (and takes an
   identity, ``reid.py``), and dropped after ``tentative_misses`` missed ones.
 * A confirmed target missed ``lost_after`` frames in a row is lost: it is no longer
