@@ -314,7 +314,7 @@ def test_coasting_box_takes_the_columns_of_what_shows():
 
     predicted = np.array([[100, 30, 90, 240], [10, 10, 20, 40]], np.float32)
     shown = np.array([[140, 30, 40, 60], [0, 0, 0, 0]], np.float32)
-    got = np.asarray(coasting_box(predicted, shown))
+    got = np.asarray(coasting_box(jnp.asarray(predicted), jnp.asarray(shown)))
     np.testing.assert_allclose(got[0], [115, 30, 90, 240])  # centred on column 160
 
 
