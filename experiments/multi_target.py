@@ -98,6 +98,7 @@ TRAIN_VARIANTS = {
     "found behind 0.3": {"life.hidden_share": 0.3},
     "found behind 0.5": {"life.hidden_share": 0.5},
     "blob evidence + found behind 0.3": {"config.blob_evidence": True, "life.hidden_share": 0.3},
+    "slots without fill adaptation": {"rgbd.beta.fill_adapt": 0.0},
     "evidence 0.1": {"life.min_evidence": 0.1},
     "evidence 0.15": {"life.min_evidence": 0.15},
     "evidence 0.2": {"life.min_evidence": 0.2},
