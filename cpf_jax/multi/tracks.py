@@ -9,8 +9,10 @@ the thresholds.
 
 * A slot's target is found when its filter reports a box and the target's own pixels fill
   at least ``min_evidence`` of the filter's estimate (``claim.evidence``: foreground at its
-  depth that no other target claims); a target hidden behind a nearer one is missed, not
-  found on the floor or on a farther person left in its box, so its misses count.
+  depth that no other target claims, nor joins at its depth to its claimed pixels,
+  ``claim.blob_reach``, with ``MultiConfig.blob_evidence``); a target whose filter lost
+  him behind a nearer one is missed, not found on the floor or on a farther person left
+  in its box or on the rest of a person another target holds, so its misses count.
 * A confirmed target that its filter misses is still found when nearer targets claim at
   least ``hidden_share`` of the box it claims (its predicted box grown by
   ``claim.margin``) and its own pixels fill ``min_evidence`` of the rest
