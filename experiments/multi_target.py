@@ -82,6 +82,7 @@ TRAIN_VARIANTS = {
     "blob evidence, not found behind": {"life.hidden_share": 2.0},
     "found behind 0.3, no blob evidence": {"config.blob_evidence": False},
     "found behind 0.5, no blob evidence": {"config.blob_evidence": False, "life.hidden_share": 0.5},
+    "found behind when what shows looks like him (0.5)": {"life.behind_appearance": 0.5},
     "slots without fill adaptation": {"rgbd.beta.fill_adapt": 0.0},
     "before; no evidence (min_evidence 0)": {**BEFORE, "life.min_evidence": 0.0},
     "before; confirm 2": {**BEFORE, "life.confirm": 2.0},

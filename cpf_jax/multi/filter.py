@@ -269,12 +269,18 @@ def multi_init(
     return state
 
 
-def behind(life, status: Array, seen_now: Array, visible: claim.Visible) -> Array:
+def behind(
+    life, status: Array, seen_now: Array, visible: claim.Visible, looks: Array | None = None
+) -> Array:
     """``[K] bool``: confirmed targets not seen by their filters but seen behind nearer
     targets (``tracks`` module docstring): at least ``life.hidden_share`` of the box it
-    claims (``visible``: ``claim.visible_part`` of it) is claimed by nearer targets and
-    the target's own pixels fill ``min_evidence`` of the rest."""
+    claims (``visible``: ``claim.visible_part`` of it) is claimed by nearer targets, the
+    target's own pixels fill ``min_evidence`` of the rest, and the body colours of what
+    shows are within ``life.behind_appearance`` of the remembered ones (``looks [K]``, the
+    Bhattacharyya distance; None: not checked)."""
     shown = (visible.evidence >= life.min_evidence) & (visible.box[:, 3] > 0)
+    if looks is not None:
+        shown = shown & (looks <= life.behind_appearance)
     return (status == ACTIVE) & ~seen_now & (visible.hidden >= life.hidden_share) & shown
 
 
@@ -360,7 +366,9 @@ def multi_step(
         obs.foreground, frame.depth, owner, grown, pred.depth, pred.gate, reach
     )
     seen_now = ~infos.lost & (evidence >= params.life.min_evidence)
-    hidden = behind(params.life, tr.status, seen_now, visible)
+    looks = tracks.seen_distance(_colours(config, obs, visible.box), tr)
+    looks = jnp.where(jnp.sum(tr.appearance, axis=-1) > 0, looks, 0.0)
+    hidden = behind(params.life, tr.status, seen_now, visible, looks)
     # A target seen behind another is reported with what shows of him, and coasts.
     infos = infos._replace(box=jnp.where(hidden[:, None], visible.box, infos.box))
     slots = coast(slots, hidden, coasting_box(pred.box, visible.box))

@@ -49,6 +49,7 @@ class LifeParams(NamedTuple):
     verify_after: Array  # missed frames after which a target found again must look like it
     min_evidence: Array  # least share of its estimate its own unclaimed pixels fill (found)
     hidden_share: Array  # ... or of the rest of its claim box, when nearer targets claim this
+    behind_appearance: Array  # ... and what shows is this close to its body colours
 
 
 class ReidParams(NamedTuple):
@@ -92,6 +93,7 @@ TRACK_SPEC = (
         verify_after=P(5.0, "softplus", False),
         min_evidence=P(0.05, "sigmoid", False),
         hidden_share=P(0.3, "softplus", False),
+        behind_appearance=P(1.0, "softplus", False),
     ),
     ReidParams(
         appearance=P(0.5, "sigmoid", False),
