@@ -41,7 +41,7 @@ class MultiConfig:
     max_births: int = 3
     detect: DetectConfig = DetectConfig()
     slot_loop: str = "map"
-    blob_evidence: bool = True
+    blob_evidence: bool = False
 
     def __post_init__(self) -> None:
         if self.max_targets < 1:

@@ -92,7 +92,7 @@ TRACK_SPEC = (
         forget_after=P(100.0, "softplus", False),
         verify_after=P(5.0, "softplus", False),
         min_evidence=P(0.05, "sigmoid", False),
-        hidden_share=P(0.3, "softplus", False),
+        hidden_share=P(2.0, "softplus", False),
         behind_appearance=P(1.0, "softplus", False),
     ),
     ReidParams(
