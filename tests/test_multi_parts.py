@@ -251,7 +251,7 @@ def _visible_loop(foreground, depth, owner, boxes, z, gate):
                 if mine and z[k] > 0:
                     own.append((r, c))
         area = max(w * h, 1.0)
-        hidden[k] = front / area
+        hidden[k] = min(front / area, 1.0)
         shown[k] = len(own) / max(area * (1 - hidden[k]), 1.0)
         if own:
             rs, cs = np.array(own).T

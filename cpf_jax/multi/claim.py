@@ -260,7 +260,8 @@ def visible_part(
     front = (owner[None] >= 0) & (owner[None] != k[:, None, None])
     front = front & (z_owner[None] < z[:, None, None])
     area = jnp.maximum(boxes[:, 2] * boxes[:, 3], 1.0)
-    hidden = _count_inside(rows, front, cols) / area
+    # At most 1: a box a few pixels across can hold more pixel centres than its area.
+    hidden = jnp.minimum(_count_inside(rows, front, cols) / area, 1.0)
     n_own = jnp.sum(own, axis=(1, 2), dtype=jnp.float32)
     shown = n_own / jnp.maximum(area * (1.0 - hidden), 1.0)
     r = jnp.any(own, axis=2)  # [K, H]
