@@ -4,6 +4,10 @@ NumPy loop (plainly, under jit and under vmap where it is a kernel of arrays).""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from checks import check_kernel
@@ -135,6 +139,183 @@ def test_evidence_counts_own_unclaimed_foreground_at_the_targets_depth():
     # Slot 1 shares pixels with slot 0 at its depth: those slot 0 owns are not its evidence.
     alone = claim.evidence(foreground, depth, np.full_like(owner, -1), boxes, z, gate)
     assert float(alone[1]) > float(claim.evidence(*args)[1]) > 0
+
+
+def _joined_reference(mask, seeds):
+    """SciPy's 4-connected components of each mask holding a seed."""
+    from scipy import ndimage
+
+    out = np.zeros_like(mask)
+    for k in range(mask.shape[0]):
+        labels, _ = ndimage.label(mask[k])
+        hit = np.unique(labels[seeds[k] & mask[k]])
+        out[k] = np.isin(labels, hit[hit > 0])
+    return out
+
+
+def test_joined_is_the_seeded_connected_components():
+    def case(seed):
+        rng = np.random.default_rng(seed)
+        mask = rng.uniform(size=(3, H, W)) < 0.6  # near percolation: winding blobs
+        mask[0] = False
+        mask[0, 4:20, 3:9] = True  # a blob
+        mask[0, 4:20, 10:16] = True  # its neighbour, apart from it
+        mask[0, 12, 7:9] = False  # and a notch
+        seeds = rng.uniform(size=(3, H, W)) < 0.02
+        seeds[0] = False
+        seeds[0, 10, 4] = True
+        return mask, seeds
+
+    args = case(7)
+    check_kernel(
+        lambda m, s: claim.joined(m, s, max_rounds=H * W),
+        _joined_reference,
+        args,
+        batch=[args, case(8)],
+    )
+    got = np.asarray(claim.joined(*args))
+    assert (got[0, 4:20, 3:9] == args[0][0, 4:20, 3:9]).all() and not got[0, :, 10:16].any()
+
+
+def _blob_reach_reference(foreground, depth, owner, z, gate):
+    d = depth.astype(np.float64)
+    near = np.abs(d[None] - z[:, None, None]) < gate[:, None, None]
+    mask = (foreground & (d > 0))[None] & near & (z > 0)[:, None, None]
+    seeds = owner[None] == np.arange(len(z))[:, None, None]
+    return _joined_reference(mask, seeds)
+
+
+def _evidence_blob_loop(foreground, depth, owner, boxes, z, gate):
+    reach = _blob_reach_reference(foreground, depth, owner, z, gate)
+    out = np.zeros(len(z))
+    for k, (x, y, w, h) in enumerate(boxes):
+        n = 0
+        for r in range(H):
+            for c in range(W):
+                inside = x <= c + 0.5 < x + w and y <= r + 0.5 < y + h
+                d = float(depth[r, c])
+                mine = owner[r, c] in (-1, k)
+                theirs = any(reach[j, r, c] for j in range(len(z)) if j != k)
+                mine = mine and (reach[k, r, c] or not theirs)
+                n += inside and foreground[r, c] and d > 0 and abs(d - z[k]) < gate[k] and mine
+        out[k] = n / max(w * h, 1.0) if z[k] > 0 else 0.0
+    return out
+
+
+def test_blob_evidence_leaves_out_the_rest_of_a_claimed_persons_blob():
+    def case(seed):
+        rng = np.random.default_rng(seed)
+        depth, boxes, z, gate, claiming = _scene(rng)
+        depth = np.where(rng.uniform(size=(H, W)) < 0.5, 2100, depth).astype(np.uint16)
+        owner = _owner_loop(depth, boxes, z, gate, claiming)
+        foreground = rng.uniform(size=(H, W)) < 0.8
+        return foreground, depth, owner, boxes, z, gate
+
+    def kernel(foreground, depth, owner, boxes, z, gate):
+        reach = claim.blob_reach(foreground, depth, owner, z, gate)
+        return claim.evidence(foreground, depth, owner, boxes, z, gate, reach)
+
+    args = case(9)
+    check_kernel(kernel, _evidence_blob_loop, args, batch=[args, case(10)])
+    check_kernel(
+        claim.blob_reach, _blob_reach_reference, (args[0], args[1], args[2], args[4], args[5])
+    )
+    # A target that claims nothing (slot 2) beside a blob slot 0 claims at its depth: the
+    # blob is slot 0's person, not its evidence.
+    foreground = np.ones((H, W), bool)
+    depth = np.full((H, W), 3000, np.uint16)
+    depth[:, 12:22] = 2000  # one person at 2 m, columns 12-21
+    boxes = np.array([[12, 0, 4, H], [0, 0, 2, 2], [17, 0, 5, H]], np.float32)
+    z = np.array([2000.0, 0.0, 2000.0], np.float32)
+    gate = np.full(3, 300.0, np.float32)
+    owner = _owner_loop(depth, boxes, z, gate, np.array([True, False, False]))
+    plain = claim.evidence(foreground, depth, owner, boxes, z, gate)
+    reach = claim.blob_reach(foreground, depth, owner, z, gate)
+    blob = claim.evidence(foreground, depth, owner, boxes, z, gate, reach)
+    assert float(plain[2]) == 1.0 and float(blob[2]) == 0.0
+    assert float(blob[0]) == float(plain[0]) == 1.0
+
+
+def _visible_loop(foreground, depth, owner, boxes, z, gate):
+    hidden, shown, tight = np.zeros(len(z)), np.zeros(len(z)), np.zeros((len(z), 4))
+    for k, (x, y, w, h) in enumerate(boxes):
+        front, own = 0, []
+        for r in range(H):
+            for c in range(W):
+                if not (x <= c + 0.5 < x + w and y <= r + 0.5 < y + h):
+                    continue
+                o = owner[r, c]
+                front += bool(o >= 0 and o != k and z[o] < z[k])
+                d = float(depth[r, c])
+                mine = o in (-1, k) and foreground[r, c] and d > 0 and abs(d - z[k]) < gate[k]
+                if mine and z[k] > 0:
+                    own.append((r, c))
+        area = max(w * h, 1.0)
+        hidden[k] = min(front / area, 1.0)
+        shown[k] = len(own) / max(area * (1 - hidden[k]), 1.0)
+        if own:
+            rs, cs = np.array(own).T
+            tight[k] = (cs.min(), rs.min(), cs.max() + 1 - cs.min(), rs.max() + 1 - rs.min())
+    return claim.Visible(hidden, shown, tight)
+
+
+def test_visible_part_against_a_loop():
+    def case(seed):
+        rng = np.random.default_rng(seed)
+        depth, boxes, z, gate, claiming = _scene(rng)
+        owner = _owner_loop(depth, boxes, z, gate, np.ones(3, bool))
+        foreground = rng.uniform(size=(H, W)) < 0.7
+        return foreground, depth, owner, boxes, z, gate
+
+    args = case(11)
+    check_kernel(claim.visible_part, _visible_loop, args, batch=[args, case(12)], rtol=1e-5)
+    # A man at 3 m behind a woman at 2 m who claims the lower part of his box: his head
+    # shows above her, fills the rest of the box, and is its tight box.
+    foreground = np.ones((H, W), bool)
+    depth = np.full((H, W), 5000, np.uint16)
+    depth[2:8, 10:16] = 3000  # his head
+    depth[8:, 6:20] = 2000  # her, in front of him
+    boxes = np.array([[8, 2, 10, 22], [6, 8, 14, 16]], np.float32)
+    z = np.array([3000.0, 2000.0], np.float32)
+    gate = np.full(2, 300.0, np.float32)
+    owner = _owner_loop(depth, boxes, z, gate, np.array([True, True]))
+    vis = claim.visible_part(foreground, depth, owner, boxes, z, gate)
+    assert float(vis.hidden[0]) == pytest.approx(16 * 10 / 220)
+    assert float(vis.evidence[0]) == pytest.approx(36 / 60)
+    np.testing.assert_array_equal(np.asarray(vis.box[0]), [10, 2, 6, 6])
+    assert float(claim.evidence(foreground, depth, owner, boxes, z, gate)[0]) < 36 / 100
+
+
+def test_coast_moves_hidden_clouds_to_the_predicted_box():
+    from cpf_jax.filter import Cloud
+    from cpf_jax.multi.filter import coast
+
+    class Slots(NamedTuple):
+        cloud: Cloud
+        estimate: np.ndarray
+
+    rng = np.random.default_rng(13)
+    particles = rng.normal(size=(2, 5, 8)).astype(np.float32)
+    slots = Slots(Cloud(particles, particles - 1, np.zeros((2, 5))), np.ones((2, 4), np.float32))
+    slots = jax.tree_util.tree_map(jnp.asarray, slots)
+    box = np.array([[10, 20, 4, 6], [30, 40, 2, 2]], np.float32)
+    out = coast(slots, np.array([True, False]), box)
+    # Centred on the box, its own size.
+    np.testing.assert_allclose(out.estimate[0], [11.5, 22.5, 1, 1], atol=1e-6)
+    np.testing.assert_allclose(
+        out.cloud.particles[0, :, :2] - particles[0, :, :2], [[10.5, 21.5]] * 5
+    )
+    np.testing.assert_allclose(out.cloud.previous[0, :, 2:], particles[0, :, 2:] - 1)
+    np.testing.assert_array_equal(out.cloud.particles[1], particles[1])
+
+
+def test_coasting_box_takes_the_columns_of_what_shows():
+    from cpf_jax.multi.filter import coasting_box
+
+    predicted = np.array([[100, 30, 90, 240], [10, 10, 20, 40]], np.float32)
+    shown = np.array([[140, 30, 40, 60], [0, 0, 0, 0]], np.float32)
+    got = np.asarray(coasting_box(jnp.asarray(predicted), jnp.asarray(shown)))
+    np.testing.assert_allclose(got[0], [115, 30, 90, 240])  # centred on column 160
 
 
 def _same_place_loop(a, za, ga, b, zb, gb, share):

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -40,7 +41,11 @@ __all__ = [
     "claim_owner",
     "slot_depths",
     "claimed_mask",
+    "joined",
+    "blob_reach",
     "evidence",
+    "Visible",
+    "visible_part",
     "same_place",
     "box_depths",
 ]
@@ -135,25 +140,139 @@ def claimed_mask(depth: Array, boxes: Array, z: Array, gate: Array, claiming: Ar
     return jnp.any(mine, axis=0)
 
 
-def evidence(
-    foreground: Array, depth: Array, owner: Array, boxes: Array, z: Array, gate: Array
-) -> Array:
-    """``[K]``: the share of each box ``[K, 4]`` (xywh) that its own target explains: the
-    ``foreground [H, W]`` pixels within ``gate [K]`` of its depth ``z [K]`` (mm) that no
-    other target owns (``owner [H, W]``, ``claim_owner``). A target whose box holds little
-    of it is not seen, whatever its filter reports: the pixels a nearer target claims are
-    that target's, and the floor or a farther person left in the box are not him."""
-    height, width = depth.shape
+def _fill_runs(mask: Array, reached: Array) -> Array:
+    """``reached`` grown to every ``mask`` pixel of a run (along the last axis) that holds a
+    reached pixel: a run's pixels carry its index, and a pixel is reached when the nearest
+    reached pixel on its left or on its right carries its own."""
+    start = mask & ~jnp.pad(mask, [(0, 0)] * (mask.ndim - 1) + [(1, 0)])[..., :-1]
+    run = jnp.cumsum(start, axis=-1, dtype=jnp.int32)
+    seed = mask & reached
+    left = jax.lax.cummax(jnp.where(seed, run, -1), axis=mask.ndim - 1)
+    big = jnp.iinfo(jnp.int32).max
+    right = jax.lax.cummin(jnp.where(seed, run, big), axis=mask.ndim - 1, reverse=True)
+    return mask & ((left == run) | (right == run))
+
+
+def joined(mask: Array, seeds: Array, max_rounds: int = 16) -> Array:
+    """``[..., H, W] bool``: the ``mask`` pixels 4-connected within ``mask`` to a ``seeds``
+    pixel (seeds off the mask join nothing). Row runs and column runs are filled in turn
+    until nothing changes (at most ``max_rounds`` rounds of both; a blob reached in fewer
+    turns of its outline is exact)."""
+
+    def fill(reached):
+        rows = _fill_runs(mask, reached)
+        return jnp.swapaxes(
+            _fill_runs(jnp.swapaxes(mask, -1, -2), jnp.swapaxes(rows, -1, -2)), -1, -2
+        )
+
+    def cond(c):
+        reached, last, n = c
+        return jnp.any(reached != last) & (n < max_rounds)
+
+    def body(c):
+        reached, _, n = c
+        return fill(reached), reached, n + 1
+
+    first = mask & seeds
+    reached, _, _ = jax.lax.while_loop(cond, body, (fill(first), first, jnp.int32(1)))
+    return reached
+
+
+def blob_reach(foreground: Array, depth: Array, owner: Array, z: Array, gate: Array) -> Array:
+    """``[K, H, W] bool``: for each target, the ``foreground [H, W]`` pixels within ``gate
+    [K]`` of its depth ``z [K]`` (mm) joined at that depth to the pixels it owns (``owner
+    [H, W]``, ``claim_owner``): one depth-connected blob is one person, so the part of a
+    person that a narrow box leaves unclaimed is still his."""
     d = depth.astype(jnp.float32)
-    rows, cols = _inside(boxes, height, width)
+    k = jnp.arange(z.shape[0])
+    near = jnp.abs(d[None] - z[:, None, None]) < gate[:, None, None]
+    mask = (foreground & (d > 0))[None] & near & (z > 0)[:, None, None]
+    return joined(mask, owner[None] == k[:, None, None])
+
+
+def _own_pixels(foreground, depth, owner, z, gate, reach):
+    """``[K, H, W] bool``: each target's own pixels (``evidence``'s docstring)."""
+    d = depth.astype(jnp.float32)
     k = jnp.arange(z.shape[0])
     near = jnp.abs(d[None] - z[:, None, None]) < gate[:, None, None]
     free = (owner[None] < 0) | (owner[None] == k[:, None, None])
-    own = (foreground & (d > 0))[None] & near & free & (z > 0)[:, None, None]
-    count = jnp.einsum(
-        "kh,khw,kw->k", rows.astype(jnp.float32), own.astype(jnp.float32), cols.astype(jnp.float32)
-    )
-    return count / jnp.maximum(boxes[:, 2] * boxes[:, 3], 1.0)
+    if reach is not None:
+        n_reach = jnp.sum(reach, axis=0, dtype=jnp.int32)  # [H, W]
+        others = n_reach[None] - reach.astype(jnp.int32)
+        free = free & ((others == 0) | reach)
+    return (foreground & (d > 0))[None] & near & free & (z > 0)[:, None, None]
+
+
+def _count_inside(rows: Array, mask: Array, cols: Array) -> Array:
+    """``[K]``: the ``mask [K, H, W]`` pixels inside each box (``rows [K, H]``, ``cols [K, W]``)."""
+    f = jnp.float32
+    return jnp.einsum("kh,khw,kw->k", rows.astype(f), mask.astype(f), cols.astype(f))
+
+
+def evidence(
+    foreground: Array,
+    depth: Array,
+    owner: Array,
+    boxes: Array,
+    z: Array,
+    gate: Array,
+    reach: Array | None = None,
+) -> Array:
+    """``[K]``: the share of each box ``[K, 4]`` (xywh) that its own target explains: the
+    ``foreground [H, W]`` pixels within ``gate [K]`` of its depth ``z [K]`` (mm) that no
+    other target owns (``owner [H, W]``, ``claim_owner``) nor, given ``reach [K, H, W]``
+    (``blob_reach``), joins at its depth without the target joining them too. A target
+    whose box holds little of it is not seen, whatever its filter reports: the pixels a
+    nearer target claims are that target's, the rest of a claimed person's blob is his,
+    and the floor or a farther person left in the box are not him."""
+    rows, cols = _inside(boxes, *depth.shape)
+    own = _own_pixels(foreground, depth, owner, z, gate, reach)
+    return _count_inside(rows, own, cols) / jnp.maximum(boxes[:, 2] * boxes[:, 3], 1.0)
+
+
+class Visible(NamedTuple):
+    hidden: Array  # [K] share of the box that nearer targets claim
+    evidence: Array  # [K] share of the rest of the box that the target's own pixels fill
+    box: Array  # [K, 4] xywh, the tight box of its own pixels in the box (zeros: none)
+
+
+def visible_part(
+    foreground: Array,
+    depth: Array,
+    owner: Array,
+    boxes: Array,
+    z: Array,
+    gate: Array,
+    reach: Array | None = None,
+) -> Visible:
+    """What of each target shows in its box ``[K, 4]`` (xywh, e.g. the predicted one) under
+    depth-ordered occlusion: the share of the box that the pixels of nearer targets
+    (``owner [H, W]`` at a depth under ``z [K]``) cover, the share of the rest that its own
+    pixels fill (``evidence``'s, with ``reach``), and their tight box. A target behind a
+    nearer one is seen when the part of his box left in view is his: his head above the
+    other's shoulder explains his box as well as his whole body would without her."""
+    height, width = depth.shape
+    rows, cols = _inside(boxes, height, width)
+    own = _own_pixels(foreground, depth, owner, z, gate, reach)
+    own = own & rows[:, :, None] & cols[:, None, :]
+    z_owner = jnp.where(owner >= 0, z[jnp.maximum(owner, 0)], jnp.inf)  # [H, W]
+    k = jnp.arange(z.shape[0])
+    front = (owner[None] >= 0) & (owner[None] != k[:, None, None])
+    front = front & (z_owner[None] < z[:, None, None])
+    area = jnp.maximum(boxes[:, 2] * boxes[:, 3], 1.0)
+    # At most 1: a box a few pixels across can hold more pixel centres than its area.
+    hidden = jnp.minimum(_count_inside(rows, front, cols) / area, 1.0)
+    n_own = jnp.sum(own, axis=(1, 2), dtype=jnp.float32)
+    shown = n_own / jnp.maximum(area * (1.0 - hidden), 1.0)
+    r = jnp.any(own, axis=2)  # [K, H]
+    c = jnp.any(own, axis=1)  # [K, W]
+    y0 = jnp.argmax(r, axis=1)
+    y1 = height - jnp.argmax(r[:, ::-1], axis=1)
+    x0 = jnp.argmax(c, axis=1)
+    x1 = width - jnp.argmax(c[:, ::-1], axis=1)
+    box = jnp.stack([x0, y0, x1 - x0, y1 - y0], axis=-1).astype(jnp.float32)
+    box = jnp.where((n_own > 0)[:, None], box, 0.0)
+    return Visible(hidden, shown, box)
 
 
 def same_place(

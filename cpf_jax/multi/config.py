@@ -31,7 +31,9 @@ class MultiConfig:
     pixels, ``side_scene``, is off by default); ``max_targets``
     the number of slots (people tracked at once, confirmed or not, and those kept for
     re-identification); ``max_births`` how many detections a frame may start;
-    ``detect`` the person detector's thresholds on the foreground no target claims.
+    ``detect`` the person detector's thresholds on the foreground no target claims;
+    ``blob_evidence`` whether a target's evidence leaves out the pixels joined at another
+    target's depth to that target's claimed pixels (``claim.blob_reach``).
     """
 
     rgbd: RGBDConfig = RGBDConfig(side_scene=None, n_particles=200)
@@ -39,6 +41,7 @@ class MultiConfig:
     max_births: int = 3
     detect: DetectConfig = DetectConfig()
     slot_loop: str = "map"
+    blob_evidence: bool = False
 
     def __post_init__(self) -> None:
         if self.max_targets < 1:

@@ -54,6 +54,9 @@ __all__ = [
     "step_slots",
     "add_births",
     "union",
+    "behind",
+    "coasting_box",
+    "coast",
     "people_rows",
     "track_people",
 ]
@@ -266,18 +269,58 @@ def multi_init(
     return state
 
 
-def _judge(config, params: MultiParams, state: MultiState, infos, obs, boxes, evidence) -> tuple:
+def behind(
+    life, status: Array, seen_now: Array, visible: claim.Visible, looks: Array | None = None
+) -> Array:
+    """``[K] bool``: confirmed targets not seen by their filters but seen behind nearer
+    targets (``tracks`` module docstring): at least ``life.hidden_share`` of the box it
+    claims (``visible``: ``claim.visible_part`` of it) is claimed by nearer targets, the
+    target's own pixels fill ``min_evidence`` of the rest, and the body colours of what
+    shows are within ``life.behind_appearance`` of the remembered ones (``looks [K]``, the
+    Bhattacharyya distance; None: not checked)."""
+    shown = (visible.evidence >= life.min_evidence) & (visible.box[:, 3] > 0)
+    if looks is not None:
+        shown = shown & (looks <= life.behind_appearance)
+    return (status == ACTIVE) & ~seen_now & (visible.hidden >= life.hidden_share) & shown
+
+
+def coasting_box(predicted: Array, shown: Array) -> Array:
+    """``[K, 4]`` xywh: where a target seen behind another is, its ``predicted`` box moved
+    to the columns of what shows of him (``shown``): the head above an occluder's shoulder
+    is over the middle of the body, while the prediction carries the motion of frames
+    before he turned."""
+    cx = shown[:, 0] + 0.5 * shown[:, 2]
+    return predicted.at[:, 0].set(cx - 0.5 * predicted[:, 2])
+
+
+def coast(slots, mask: Array, box: Array):
+    """The slots' clouds ``mask [K]`` moved so that their estimate is centred on ``box [K,
+    4]`` (xywh): a filter whose target is hidden finds only the occluder or the floor, so
+    it is held at the predicted place."""
+    shift = (box[:, :2] + 0.5 * box[:, 2:]) - (slots.estimate[:, :2] + 0.5 * slots.estimate[:, 2:])
+    shift = jnp.where(mask[:, None], shift, 0.0)
+    cloud = slots.cloud._replace(
+        particles=slots.cloud.particles.at[..., :2].add(shift[:, None]),
+        previous=slots.cloud.previous.at[..., :2].add(shift[:, None]),
+    )
+    return slots._replace(cloud=cloud, estimate=slots.estimate.at[:, :2].add(shift))
+
+
+def _judge(
+    config, params: MultiParams, state: MultiState, infos, obs, boxes, seen_now, hidden
+) -> tuple:
     """Hits and misses, exclusion, and the status changes but confirmation; ``boxes [K,
-    4]``: where each slot's target is (the estimate and the reported box); ``evidence
-    [K]``: the share of each estimate that its target's own pixels fill."""
+    4]``: where each slot's target is (the estimate and the reported box); ``seen_now
+    [K]``: the slots whose filter reports a box that its target's own pixels fill enough
+    of (``claim.evidence``); ``hidden [K]``: the targets seen only behind nearer ones
+    (``behind``)."""
     tr = state.tracks
     # The templates' depths: a box's measured depth is the occluder's while one passes.
     z = _target_depths(state.slots)
     gate = depth_tolerance(params.rgbd, z)
     seen = tracks.seen_distance(_colours(config, obs, infos.box), tr)
     appearance = params.reid.appearance
-    seen_now = ~infos.lost & (evidence >= params.life.min_evidence)
-    found = tracks.verified(seen_now, tr, seen, params.life.verify_after, appearance)
+    found = tracks.verified(seen_now, tr, seen, params.life.verify_after, appearance) | hidden
     tr = tracks.count_frames(tr, found)
     loser = tracks.duplicates(params.claim.duplicate_overlap, tr, found, boxes, z, gate)
     tr, events = tracks.advance(params.life, tr, found, loser, seen, appearance)
@@ -313,11 +356,25 @@ def multi_step(
     state = state._replace(slots=slots)
     obs = observe(config.rgbd, params.rgbd.foreground, frame, state.background)
     # judge
-    boxes = union(infos.estimate, infos.box)
+    reach = None
+    if config.blob_evidence:
+        reach = claim.blob_reach(obs.foreground, frame.depth, owner, pred.depth, pred.gate)
     evidence = claim.evidence(
-        obs.foreground, frame.depth, owner, infos.estimate, pred.depth, pred.gate
+        obs.foreground, frame.depth, owner, infos.estimate, pred.depth, pred.gate, reach
     )
-    tr, events, found = _judge(config, params, state, infos, obs, boxes, evidence)
+    visible = claim.visible_part(
+        obs.foreground, frame.depth, owner, grown, pred.depth, pred.gate, reach
+    )
+    seen_now = ~infos.lost & (evidence >= params.life.min_evidence)
+    looks = tracks.seen_distance(_colours(config, obs, visible.box), tr)
+    looks = jnp.where(jnp.sum(tr.appearance, axis=-1) > 0, looks, 0.0)
+    hidden = behind(params.life, tr.status, seen_now, visible, looks)
+    # A target seen behind another is reported with what shows of him, and coasts.
+    infos = infos._replace(box=jnp.where(hidden[:, None], visible.box, infos.box))
+    slots = coast(slots, hidden, coasting_box(pred.box, visible.box))
+    state = state._replace(slots=slots)
+    boxes = jnp.where(hidden[:, None], visible.box, union(infos.estimate, infos.box))
+    tr, events, found = _judge(config, params, state, infos, obs, boxes, seen_now, hidden)
     # confirm
     z = _target_depths(slots)
     tr, next_id, new, old = tracks.confirm(
@@ -327,7 +384,7 @@ def multi_step(
     # remember
     w = jnp.exp(slots.cloud.log_weights)
     velocity = jnp.einsum("kn,knd->kd", w, slots.cloud.particles[..., 2:4])
-    unoccluded = jnp.max(infos.vote, axis=-1) < 0.1
+    unoccluded = (jnp.max(infos.vote, axis=-1) < 0.1) & ~hidden
     tr = tracks.remember(
         tr, found, unoccluded, infos.box, velocity, z, slots.body.histogram, slots.depth.velocity
     )

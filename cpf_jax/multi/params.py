@@ -48,6 +48,8 @@ class LifeParams(NamedTuple):
     forget_after: Array  # missed frames in a row after which a lost target dies
     verify_after: Array  # missed frames after which a target found again must look like it
     min_evidence: Array  # least share of its estimate its own unclaimed pixels fill (found)
+    hidden_share: Array  # ... or of the rest of its claim box, when nearer targets claim this
+    behind_appearance: Array  # ... and what shows is this close to its body colours
 
 
 class ReidParams(NamedTuple):
@@ -90,6 +92,8 @@ TRACK_SPEC = (
         forget_after=P(100.0, "softplus", False),
         verify_after=P(5.0, "softplus", False),
         min_evidence=P(0.05, "sigmoid", False),
+        hidden_share=P(2.0, "softplus", False),
+        behind_appearance=P(1.0, "softplus", False),
     ),
     ReidParams(
         appearance=P(0.5, "sigmoid", False),

@@ -9,8 +9,18 @@ the thresholds.
 
 * A slot's target is found when its filter reports a box and the target's own pixels fill
   at least ``min_evidence`` of the filter's estimate (``claim.evidence``: foreground at its
-  depth that no other target claims); a target hidden behind a nearer one is missed, not
-  found on the floor or on a farther person left in its box, so its misses count.
+  depth that no other target claims, nor joins at its depth to its claimed pixels,
+  ``claim.blob_reach``, with ``MultiConfig.blob_evidence``); a target whose filter lost
+  him behind a nearer one is missed, not found on the floor or on a farther person left
+  in its box or on the rest of a person another target holds, so its misses count.
+* A confirmed target that its filter misses is still found (with ``hidden_share`` at most
+  1; the default, above 1, leaves it missed) when nearer targets claim at
+  least ``hidden_share`` of the box it claims (its predicted box grown by
+  ``claim.margin``) and its own pixels fill ``min_evidence`` of the rest
+  (``claim.visible_part``: his head above the shoulder of the person in front), their body
+  colours within ``behind_appearance`` of the remembered ones; it is
+  reported with the tight box of what shows of him, and its filter coasts at the
+  predicted place, in the columns of what shows (``filter.coasting_box``, ``coast``).
 * A tentative target is confirmed after ``confirm`` found frames in a row (and takes an
   identity, ``reid.py``), and dropped after ``tentative_misses`` missed ones.
 * A confirmed target missed ``lost_after`` frames in a row is lost: it is no longer
