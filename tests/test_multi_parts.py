@@ -162,7 +162,7 @@ def test_same_place_against_a_loop():
     check_kernel(claim.same_place, _same_place_loop, case(), batch=[case(), case()])
 
 
-def test_host_candidates_and_the_callback_agree():
+def test_host_candidates_and_the_kernel_agree():
     import jax
 
     mask = np.zeros((120, 160), bool)

@@ -1,23 +1,22 @@
 """New people: the person detector on the foreground no target claims, and free slots for them.
 
-The detector is :func:`cpf_jax.detect.mask_person_boxes` (connected blobs cut to one depth,
-person-shaped; OpenCV on the host), called from the jitted step through
-``jax.pure_callback`` on the mask of foreground pixels that no confirmed or tentative
-target explains (``claim.claimed_mask``), after the opening and closing of
-``detect.clean_mask``. At most ``MultiConfig.max_births`` blobs, largest first, come back
-as fixed-size arrays. A blob starts a tentative target when its confidence
-(``detect.person_confidence``) reaches ``life.birth_confidence``, it is at least
-``life.birth_aspect`` as wide as tall (narrower: a limb, or a sliver of someone at the
-frame's edge) and it is not part of a found target (``part_of_found``); a blob that is part
-of one (within its box grown by ``claim.reanchor_margin``, at least
+The detector is ``kernels.blobs.person_blobs`` (the rules of :mod:`cpf_jax.detect` in
+JAX: the opening and closing, connected blobs cut to one depth, person-shaped) on the
+mask of foreground pixels that no confirmed or tentative target explains
+(``claim.claimed_mask``), inside the jitted step. At most ``MultiConfig.max_births``
+blobs, largest first, come back as fixed-size arrays. A blob starts a tentative target
+when its confidence (``detect.person_confidence``) reaches ``life.birth_confidence``, it
+is at least ``life.birth_aspect`` as wide as tall (narrower: a limb, or a sliver of
+someone at the frame's edge) and it is not part of a found target (``part_of_found``); a
+blob that is part of one (within its box grown by ``claim.reanchor_margin``, at least
 ``claim.reanchor_aspect`` as wide as tall) and makes its box larger starts that target
 again on the union (``reanchor``: he walked into view legs first). Each new target takes a
 free slot, or the slot of the lost target closest to being forgotten when none is free.
+:func:`host_candidates` is the same detector on the host (OpenCV), its test oracle.
 """
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -26,6 +25,7 @@ import numpy as np
 from jax import Array
 
 from cpf_jax.detect import DetectConfig, clean_mask, mask_person_boxes, person_confidence
+from cpf_jax.kernels.blobs import detector_block, person_blobs
 from cpf_jax.multi.claim import same_place
 from cpf_jax.multi.config import FREE, LOST
 
@@ -50,7 +50,8 @@ def host_candidates(
     config: DetectConfig, n: int, mask: np.ndarray, depth: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``Candidates`` fields (NumPy, ``n`` rows) of the person-shaped blobs of a foreground
-    ``mask [H, W]`` over ``depth [H, W]`` mm: the host side of :func:`detect_candidates`."""
+    ``mask [H, W]`` over ``depth [H, W]`` mm: :func:`detect_candidates` on the host
+    (``detect.clean_mask`` and ``detect.mask_person_boxes``), its reference."""
     mask = np.asarray(mask, bool)
     depth = np.asarray(depth)
     clean = clean_mask(mask, config).astype(bool)
@@ -68,31 +69,45 @@ def host_candidates(
     return out, conf, z
 
 
-def detect_candidates(config: DetectConfig, n: int, mask: Array, depth: Array) -> Candidates:
-    """The person-shaped blobs of ``mask [H, W] bool`` (module docstring), from inside
-    ``jit``, ``vmap`` (one host call per item) and ``lax.scan``; a mask with fewer pixels
-    than the detector's least person (``min_area``) is not sent to the host."""
-    shapes = (
-        jax.ShapeDtypeStruct((n, 4), jnp.float32),
-        jax.ShapeDtypeStruct((n,), jnp.float32),
-        jax.ShapeDtypeStruct((n,), jnp.float32),
-    )
+#: Rounds of the depth cut (``kernels.blobs.person_blobs``): a person, the chair he
+#: touches and a second person behind both are three.
+CUT_ROUNDS = 3
 
-    def call(mask, depth):
-        return jax.pure_callback(
-            functools.partial(host_candidates, config, n),
-            shapes,
+
+def detect_candidates(config: DetectConfig, n: int, mask: Array, depth: Array) -> Candidates:
+    """The ``n`` largest person-shaped blobs of ``mask [H, W] bool`` over ``depth [H, W]``
+    mm (module docstring), pure JAX (``jit``, ``vmap``, ``lax.scan``); on blocks of
+    ``kernels.blobs.detector_block(W)`` pixels. A mask with fewer pixels than the
+    detector's least person (``min_area``) is not examined."""
+    block = detector_block(mask.shape[-1])
+
+    def examine(mask, depth):
+        box, _, z, confidence = person_blobs(
             mask,
             depth,
-            vmap_method="sequential",
+            n,
+            open_px=config.open_px,
+            close_px=config.close_px,
+            depth_gap=config.depth_gap,
+            depth_gap_rel=config.depth_gap_rel,
+            min_area=config.min_area,
+            min_height=config.min_height,
+            max_aspect=config.max_aspect,
+            block=block,
+            rounds=CUT_ROUNDS,
         )
+        return Candidates(box, confidence, z)
 
     def nobody(mask, depth):
-        return tuple(jnp.zeros(s.shape, s.dtype) for s in shapes)
+        return Candidates(
+            jnp.zeros((n, 4), jnp.float32),
+            jnp.zeros((n,), jnp.float32),
+            jnp.zeros((n,), jnp.float32),
+        )
 
-    # Fewer foreground pixels than the least person: no call to the host.
+    # Fewer foreground pixels than the least person: nobody (unbatched, not examined).
     enough = jnp.sum(mask) >= config.min_area * mask.size
-    return Candidates(*jax.lax.cond(enough, call, nobody, mask, depth))
+    return jax.lax.cond(enough, examine, nobody, mask, depth)
 
 
 def part_of_found(

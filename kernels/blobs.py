@@ -1,0 +1,319 @@
+"""Person-shaped blobs of a foreground mask, in JAX: the person detector's rules on arrays.
+
+The rules are those of ``cpf_jax.detect`` (its module docstring), and the person rule
+and confidence below are the ones the host detector calls:
+
+1. A morphological opening (``open_px``) and closing (``close_px``) of the mask, with
+   OpenCV's conventions (a ``k``-pixel square, anchor ``k // 2``, the frame's outside
+   never erodes nor dilates).
+2. 8-connected components, each cut to its main depth: the part within
+   ``max(depth_gap, depth_gap_rel * z)`` of its median depth ``z`` (with the parts that have
+   no depth), its largest connected piece kept and the rest examined again in the next
+   round, for a fixed number of ``rounds``.
+3. A person is at least ``min_area`` of the frame's pixels, ``min_height`` of its height
+   and no wider than ``max_aspect`` times his height (:func:`person_shaped`); his
+   confidence is :func:`person_confidence`.
+
+Steps 2-3 run on blocks of ``block x block`` pixels (a block is foreground when any of
+its pixels is, its depth the mean of its measured pixels), because the
+connected-components kernel (``graph.connected_components``) takes rows of at most 250
+cells and its cost grows with the area. Blocks keep the components of the cleaned mask:
+pixels that touch lie in touching blocks, and after a closing of ``close_px`` two blobs
+are at least ``close_px`` pixels apart, which holds a whole block between them when
+``2 * block - 1 <= close_px`` (``block <= 4`` for the default 7). Areas and boxes are
+counted on the pixels of the kept blocks, so a box is exact when its blob is at least a
+block away from any other; where a depth cut runs through a block, the whole block goes
+to one side. Boxes are ``(x, y, w, h)`` pixels, top-left corner, the tight box.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+from jax import Array, lax
+
+from .graph import connected_components, pixel_graph
+
+__all__ = [
+    "closing",
+    "confidence_shares",
+    "detector_block",
+    "erode",
+    "dilate",
+    "group_median",
+    "weighted_median",
+    "opening",
+    "person_blobs",
+    "person_confidence",
+    "person_shaped",
+]
+
+#: Widest block grid the detector works on (columns); ``graph.connected_components`` takes 250.
+MAX_BLOCK_COLUMNS = 160
+
+
+def detector_block(width: int) -> int:
+    """The block size (pixels) of :func:`person_blobs` for frames ``width`` pixels wide: the
+    smallest one that keeps the grid within ``MAX_BLOCK_COLUMNS`` columns."""
+    return max(1, math.ceil(width / MAX_BLOCK_COLUMNS))
+
+
+def _window(mask: Array, size: int, op, init) -> Array:
+    """``out[r, c] = op`` over ``mask[r - a : r - a + size, c - a : c - a + size]``, ``a =
+    size // 2``, the outside taken as ``init`` (separable: rows, then columns)."""
+    a = size // 2
+    x = mask.astype(jnp.int32)
+    x = lax.reduce_window(x, init, op, (size, 1), (1, 1), ((a, size - 1 - a), (0, 0)))
+    x = lax.reduce_window(x, init, op, (1, size), (1, 1), ((0, 0), (a, size - 1 - a)))
+    return x.astype(bool)
+
+
+def erode(mask: Array, size: int) -> Array:
+    """``[H, W] bool`` erosion by a ``size`` square (``cv2.erode``, default border)."""
+    return _window(mask, size, lax.min, 1)
+
+
+def dilate(mask: Array, size: int) -> Array:
+    """``[H, W] bool`` dilation by a ``size`` square (``cv2.dilate``, default border)."""
+    return _window(mask, size, lax.max, 0)
+
+
+def opening(mask: Array, size: int) -> Array:
+    """``cv2.morphologyEx(mask, MORPH_OPEN, ones((size, size)))`` as ``[H, W] bool``."""
+    return dilate(erode(mask, size), size)
+
+
+def closing(mask: Array, size: int) -> Array:
+    """``cv2.morphologyEx(mask, MORPH_CLOSE, ones((size, size)))`` as ``[H, W] bool``."""
+    return erode(dilate(mask, size), size)
+
+
+def person_shaped(w, h, area, frame_hw, min_area, min_height, max_aspect):
+    """Whether a blob of ``area`` pixels with a ``w x h`` box in a ``frame_hw`` frame is a
+    person (rule 3): NumPy or JAX scalars and arrays alike."""
+    frame_h, frame_w = frame_hw
+    return (
+        (area >= min_area * frame_h * frame_w) & (h >= min_height * frame_h) & (w <= max_aspect * h)
+    )
+
+
+def confidence_shares(box, area, frame_hw) -> Array:
+    """``[..., 4]`` shares in [0, 1] of a person's confidence for tight boxes ``[..., 4]``
+    xywh of blobs of ``area [...]`` pixels: fill (the blob's share of its box, full from
+    40 %), uprightness (height over width, full from 1.8), height (of the frame's, full
+    from 30 %) and 0.6 for each frame edge the box touches (``cpf_jax.detect``)."""
+    box = jnp.asarray(box, jnp.float32)
+    x, y, w, h = (box[..., i] for i in range(4))
+    frame_h, frame_w = frame_hw
+    fill = jnp.asarray(area, jnp.float32) / jnp.maximum(w * h, 1.0)
+    upright = h / jnp.maximum(w, 1.0)
+    edges = (x <= 0).astype(jnp.int32) + (y <= 0) + (x + w >= frame_w) + (y + h >= frame_h)
+    return jnp.stack(
+        [
+            jnp.clip((fill - 0.15) / 0.25, 0.0, 1.0),
+            jnp.clip((upright - 0.9) / 0.9, 0.0, 1.0),
+            jnp.clip((h / frame_h - 0.15) / 0.15, 0.0, 1.0),
+            0.6 ** edges.astype(jnp.float32),
+        ],
+        axis=-1,
+    )
+
+
+def person_confidence(box, area, frame_hw) -> Array:
+    """``[...]`` how sure the detector is that each blob is a whole upright person: the
+    product of :func:`confidence_shares`."""
+    return jnp.prod(confidence_shares(box, area, frame_hw), axis=-1)
+
+
+def _bisect_median(weight_below, total: Array, top: float) -> Array:
+    """The least ``m`` in ``[0, top)`` (to ``top / 2**20``) where ``weight_below(m)``, the
+    weight at or below ``m`` (same shape as ``total``), reaches half of ``total``; 0 where
+    ``total`` is 0. Bisection: a sort costs more on a CPU."""
+
+    def halve(_, bounds):
+        lo, hi = bounds
+        mid = 0.5 * (lo + hi)
+        enough = 2.0 * weight_below(mid) >= total
+        return jnp.where(enough, lo, mid), jnp.where(enough, mid, hi)
+
+    lo = jnp.zeros_like(total)
+    _, hi = lax.fori_loop(0, 20, halve, (lo, jnp.full_like(total, top)))
+    return jnp.where(total > 0, hi, 0.0)
+
+
+def group_median(
+    groups: Array, values: Array, weights: Array, n_groups: int, top: float = 65536.0
+) -> Array:
+    """``[n_groups]`` weighted lower median of ``values [N]`` in ``[0, top)`` within each
+    group (``groups [N]`` int in ``[0, n_groups)``, ``weights [N]`` >= 0), to
+    ``top / 2**20`` (0.06 mm for depths in mm); 0 for a group without weight."""
+    groups = groups.astype(jnp.int32)
+    weights = weights.astype(jnp.float32)
+    total = jnp.zeros(n_groups, jnp.float32).at[groups].add(weights)
+
+    def below(m):
+        w = jnp.where(values <= m[groups], weights, 0.0)
+        return jnp.zeros(n_groups, jnp.float32).at[groups].add(w)
+
+    return _bisect_median(below, total, top)
+
+
+def weighted_median(values: Array, weights: Array, top: float = 65536.0) -> Array:
+    """``[...]`` weighted lower median of ``values [N]`` in ``[0, top)`` under each row of
+    ``weights [..., N]`` >= 0 (as :func:`group_median`); 0 for a row without weight."""
+    weights = weights.astype(jnp.float32)
+
+    def below(m):
+        return jnp.sum(jnp.where(values <= m[..., None], weights, 0.0), axis=-1)
+
+    return _bisect_median(below, jnp.sum(weights, axis=-1), top)
+
+
+def _blocks(clean: Array, z: Array, block: int):
+    """Per block of ``clean [H, W]``: pixel count, measured (depth > 0) count, mean depth
+    of the measured pixels (0: none) and the tight pixel box of its pixels ``(x0, y0, x1,
+    y1)`` inclusive, each ``[Hb, Wb]``."""
+    h, w = clean.shape
+    hb, wb = -(-h // block), -(-w // block)
+    pad = ((0, hb * block - h), (0, wb * block - w))
+    clean = jnp.pad(clean, pad)
+    z = jnp.pad(z, pad)
+
+    def cells(a):  # [Hb, Wb, block * block]
+        a = a.reshape(hb, block, wb, block).transpose(0, 2, 1, 3)
+        return a.reshape(hb, wb, block * block)
+
+    on = cells(clean)
+    measured = on & (cells(z) > 0)
+    count = jnp.sum(on, axis=-1).astype(jnp.int32)
+    n_measured = jnp.sum(measured, axis=-1).astype(jnp.int32)
+    z_sum = jnp.sum(jnp.where(measured, cells(z), 0.0), axis=-1)
+    zb = z_sum / jnp.maximum(n_measured, 1)
+    rows, cols = jnp.meshgrid(jnp.arange(hb * block), jnp.arange(wb * block), indexing="ij")
+    big = jnp.int32(1 << 30)
+    x0 = jnp.min(jnp.where(on, cells(cols), big), axis=-1)
+    y0 = jnp.min(jnp.where(on, cells(rows), big), axis=-1)
+    x1 = jnp.max(jnp.where(on, cells(cols), -1), axis=-1)
+    y1 = jnp.max(jnp.where(on, cells(rows), -1), axis=-1)
+    return count, n_measured, zb, (x0, y0, x1, y1)
+
+
+def _components(active: Array) -> Array:
+    """``[Hb, Wb] int32`` 8-connected component labels of ``active`` (smallest flat index)."""
+    return connected_components(pixel_graph(jnp.zeros(active.shape), active, 1.0))
+
+
+def _main_part(active, labels, count, n_measured, zb, min_pixels, depth_gap, depth_gap_rel):
+    """One round of the depth cut on every component of ``active`` at once: ``(main,
+    rest)`` ``[Hb, Wb] bool``, the main part of each component of at least ``min_pixels``
+    pixels (its largest connected piece near its median depth, or all of it when it has
+    too little depth or nothing is cut) and what is left of it."""
+    n = active.size
+    flat = labels.reshape(-1)
+    area = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(active, count, 0).reshape(-1))
+    measured = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(active, n_measured, 0).reshape(-1))
+    big = active & (area[labels] >= min_pixels)
+    weights = jnp.where(big, n_measured, 0).reshape(-1)
+    med = group_median(flat, zb.reshape(-1), weights, n)[labels]
+    tol = jnp.maximum(depth_gap, depth_gap_rel * med)
+    near = big & ((jnp.abs(zb - med) <= tol) | (n_measured == 0))
+    # The largest connected piece of each component's near part (ties: smallest label).
+    sub = _components(near)
+    sub_flat = sub.reshape(-1)
+    sub_area = jnp.zeros(n, jnp.int32).at[sub_flat].add(jnp.where(near, count, 0).reshape(-1))
+    parent = jnp.zeros(n, jnp.int32).at[sub_flat].max(jnp.where(near, labels, 0).reshape(-1))
+    best_area = jnp.zeros(n, jnp.int32).at[parent].max(sub_area)
+    is_best = (sub_area > 0) & (sub_area == best_area[parent])
+    best = jnp.full(n, n, jnp.int32).at[parent].min(jnp.where(is_best, jnp.arange(n), n))
+    piece = near & (sub == best[labels])
+    piece_area = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(piece, count, 0).reshape(-1))
+    cut = (
+        (5 * measured[labels] >= area[labels])  # at least a fifth of it has depth
+        & (piece_area[labels] > 0)
+        & (piece_area[labels] < area[labels])
+    )
+    main = big & jnp.where(cut, piece, True)
+    return main, big & cut & ~piece
+
+
+def _round_blobs(main, labels, count, pixel_box, frame_hw, n_out, rules):
+    """The ``n_out`` largest person-shaped main parts of one round: ``(area [n_out],
+    box [n_out, 4])`` (area -1: none)."""
+    n = main.size
+    flat = labels.reshape(-1)
+    on = main.reshape(-1)
+    area = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(on, count.reshape(-1), 0))
+    # One scatter-min for the four sides: (x0, y0, -x1, -y1).
+    x0, y0, x1, y1 = (b.reshape(-1) for b in pixel_box)
+    sides = jnp.stack([x0, y0, -x1, -y1], axis=-1)
+    big = jnp.int32(1 << 30)
+    lo = jnp.full((n, 4), big).at[flat].min(jnp.where(on[:, None], sides, big))
+    box = jnp.stack([lo[:, 0], lo[:, 1], -lo[:, 2] - lo[:, 0] + 1, -lo[:, 3] - lo[:, 1] + 1], -1)
+    box = box.astype(jnp.float32)
+    person = (area > 0) & person_shaped(box[:, 2], box[:, 3], area, frame_hw, *rules)
+    score = jnp.where(person, area, -1)
+    idx = []
+    for _ in range(n_out):  # a few argmaxes cost less than top_k over every label on a CPU
+        i = jnp.argmax(score)
+        idx.append(i)
+        score = score.at[i].set(-2)
+    idx = jnp.stack(idx)
+    return jnp.where(person[idx], area[idx], -1), box[idx]
+
+
+def person_blobs(
+    mask: Array,
+    depth: Array,
+    n: int,
+    *,
+    open_px: int,
+    close_px: int,
+    depth_gap: float,
+    depth_gap_rel: float,
+    min_area: float,
+    min_height: float,
+    max_aspect: float,
+    block: int,
+    rounds: int = 3,
+) -> tuple[Array, Array, Array, Array]:
+    """The ``n`` largest person-shaped blobs of a foreground ``mask [H, W] bool`` over
+    ``depth [H, W]`` mm (0: missing), by the rules of the module docstring.
+
+    Returns ``(box [n, 4] float32 xywh, area [n] int32 pixels, depth [n] float32 mm,
+    confidence [n] float32)``, largest first; rows without a blob are zeros. ``depth`` is
+    the median depth of the cleaned mask's measured pixels in the box (of the block means,
+    each weighted by its pixel count). ``block``, ``rounds`` and ``n`` are static.
+    """
+    mask = jnp.asarray(mask, bool)
+    z = jnp.asarray(depth, jnp.float32)
+    frame_hw = mask.shape
+    clean = closing(opening(mask, open_px), close_px)
+    count, n_measured, zb, pixel_box = _blocks(clean, z, block)
+    rules = (min_area, min_height, max_aspect)
+    min_pixels = min_area * frame_hw[0] * frame_hw[1]
+    active = count > 0
+    areas, boxes = [], []
+    for _ in range(rounds):  # static and small: unrolled
+        labels = _components(active)
+        main, active = _main_part(
+            active, labels, count, n_measured, zb, min_pixels, depth_gap, depth_gap_rel
+        )
+        a, b = _round_blobs(main, labels, count, pixel_box, frame_hw, n, rules)
+        areas.append(a)
+        boxes.append(b)
+    area, idx = lax.top_k(jnp.concatenate(areas), n)
+    found = area > 0
+    box = jnp.where(found[:, None], jnp.concatenate(boxes)[idx], 0.0)
+    area = jnp.maximum(area, 0)
+    confidence = jnp.where(found, person_confidence(box, area, frame_hw), 0.0)
+    return box, area, _box_depths(box, found, zb, n_measured, pixel_box), confidence
+
+
+def _box_depths(box, found, zb, n_measured, pixel_box) -> Array:
+    """``[n]`` median depth of the measured blocks whose pixels lie in each box (0: none)."""
+    x0, y0, x1, y1 = (p.reshape(-1) for p in pixel_box)
+    b = box[:, :, None]
+    inside = (x0 >= b[:, 0]) & (x1 < b[:, 0] + b[:, 2]) & (y0 >= b[:, 1]) & (y1 < b[:, 1] + b[:, 3])
+    weights = jnp.where(inside, n_measured.reshape(-1), 0)  # [n, Hb * Wb]
+    return jnp.where(found, weighted_median(zb.reshape(-1), weights), 0.0)
