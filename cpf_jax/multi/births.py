@@ -25,14 +25,18 @@ import numpy as np
 from jax import Array
 
 from cpf_jax.detect import DetectConfig, clean_mask, mask_person_boxes, person_confidence
+from cpf_jax.kernels.background import Background, behind_plane, side_scene
 from cpf_jax.kernels.blobs import detector_block, person_blobs
 from cpf_jax.multi.claim import same_place
-from cpf_jax.multi.config import FREE, LOST
+from cpf_jax.multi.config import FREE, LOST, MultiConfig
+from cpf_jax.rgbd.observe import no_background
+from cpf_jax.types import Frame
 
 __all__ = [
     "Candidates",
     "host_candidates",
     "detect_candidates",
+    "frame_scene",
     "part_of_found",
     "reanchor",
     "free_slot_order",
@@ -108,6 +112,16 @@ def detect_candidates(config: DetectConfig, n: int, mask: Array, depth: Array) -
     # Fewer foreground pixels than the least person: nobody (unbatched, not examined).
     enough = jnp.sum(mask) >= config.min_area * mask.size
     return jax.lax.cond(enough, examine, nobody, mask, depth)
+
+
+def frame_scene(config: MultiConfig, frame: Frame) -> Background:
+    """The scene without people read in ``frame`` itself, for a tracker without a
+    background model (``config.scene_width`` set): every pixel unseen (``no_background``,
+    so each slot's RGB-D filter reads its own scene, ``rgbd.filter.unseen_scene``), its
+    depth the row's scene at ``config.rgbd.side_scene`` times a person's width
+    (``kernels.background.side_scene``): what stands out from it, nearer, is someone."""
+    offsets = jnp.asarray(config.rgbd.side_scene, jnp.float32) * config.scene_width
+    return behind_plane(no_background(frame), side_scene(frame.depth, offsets))
 
 
 def part_of_found(

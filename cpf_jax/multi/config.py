@@ -31,7 +31,10 @@ class MultiConfig:
     pixels, ``side_scene``, is off by default); ``max_targets``
     the number of slots (people tracked at once, confirmed or not, and those kept for
     re-identification); ``max_births`` how many detections a frame may start;
-    ``detect`` the person detector's thresholds on the foreground no target claims.
+    ``detect`` the person detector's thresholds on the foreground no target claims;
+    ``scene_width`` (pixels, a person's width) reads the scene without people in each
+    frame instead of a background model (``births.frame_scene``, for a camera that moves
+    or a scene never seen empty; with ``rgbd.side_scene`` set), None: ``Context.background``.
     """
 
     rgbd: RGBDConfig = RGBDConfig(side_scene=None, n_particles=200)
@@ -39,8 +42,14 @@ class MultiConfig:
     max_births: int = 3
     detect: DetectConfig = DetectConfig()
     slot_loop: str = "map"
+    scene_width: float | None = None
 
     def __post_init__(self) -> None:
+        if self.scene_width is not None and (self.scene_width <= 0 or self.rgbd.side_scene is None):
+            raise ValueError(
+                f"scene_width must be None or > 0 with rgbd.side_scene set, got "
+                f"{self.scene_width} and {self.rgbd.side_scene}"
+            )
         if self.max_targets < 1:
             raise ValueError(f"max_targets must be >= 1, got {self.max_targets}")
         if self.max_births < 1:

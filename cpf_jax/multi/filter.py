@@ -232,14 +232,18 @@ def multi_init(
     """Slots on ``frame``: ``boxes [M, 4]`` (``M <= max_targets``; None: none) as confirmed
     targets with identities ``1..M``, then the birth stage on the rest of the frame."""
     check_frame(frame, needs_depth=True)
-    if context is None or context.background is None:
+    if config.scene_width is not None:
+        background = births.frame_scene(config, frame)
+    elif context is None or context.background is None:
         raise ValueError(
             "the multi-person tracker needs Context(background=...): the scene without "
-            "people, against which it finds them (kernels.background.median_background)"
+            "people, against which it finds them (kernels.background.median_background), "
+            "or MultiConfig.scene_width to read it in each frame"
         )
+    else:
+        background = as_background(context.background, frame)
     k = config.max_targets
     height, width = frame.colour.shape[:2]
-    background = as_background(context.background, frame)
     m = 0 if boxes is None else int(np.shape(boxes)[0])
     if m > k:
         raise ValueError(f"{m} initial boxes but max_targets is {k}")
@@ -292,6 +296,8 @@ def multi_step(
     k = config.max_targets
     k_slots, k_birth = jax.random.split(key)
     tr = state.tracks
+    if config.scene_width is not None:
+        state = state._replace(background=births.frame_scene(config, frame))
     # claim
     pred = claim.predict_targets(params.rgbd, state.slots)
     claiming = (tr.status == ACTIVE) | (tr.status == TENTATIVE)
