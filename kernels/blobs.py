@@ -15,7 +15,8 @@ and confidence below are the ones the host detector calls:
    confidence is :func:`person_confidence`.
 
 Steps 2-3 run on blocks of ``block x block`` pixels (a block is foreground when any of
-its pixels is, its depth the mean of its measured pixels), because the
+its pixels is, and near a depth when any of its measured pixels is; a blob's median depth
+is that of its blocks' mean depths, weighted by their measured pixels), because the
 connected-components kernel (``graph.connected_components``) takes rows of at most 250
 cells and its cost grows with the area. Blocks keep the components of the cleaned mask:
 pixels that touch lie in touching blocks, and after a closing of ``close_px`` two blobs
@@ -29,6 +30,7 @@ to one side. Boxes are ``(x, y, w, h)`` pixels, top-left corner, the tight box.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax.numpy as jnp
 from jax import Array, lax
@@ -170,10 +172,17 @@ def weighted_median(values: Array, weights: Array, top: float = 65536.0) -> Arra
     return _bisect_median(below, jnp.sum(weights, axis=-1), top)
 
 
-def _blocks(clean: Array, z: Array, block: int):
-    """Per block of ``clean [H, W]``: pixel count, measured (depth > 0) count, mean depth
-    of the measured pixels (0: none) and the tight pixel box of its pixels ``(x0, y0, x1,
-    y1)`` inclusive, each ``[Hb, Wb]``."""
+class _Blocks(NamedTuple):
+    count: Array  # [Hb, Wb] int32 pixels of the mask
+    n_measured: Array  # [Hb, Wb] int32 of them with depth
+    depth: Array  # [Hb, Wb] mm, their mean depth (0: none)
+    pixels: Array  # [Hb, Wb, block * block] mm, each pixel's depth (0: not in the mask or none)
+    box: tuple  # (x0, y0, x1, y1) [Hb, Wb] int32, the tight pixel box of the mask's pixels
+
+
+def _blocks(clean: Array, z: Array, block: int) -> _Blocks:
+    """Per block of ``clean [H, W]`` (``_Blocks``): pixel counts, the depths of its
+    measured pixels and their mean, and the tight box of its pixels, inclusive."""
     h, w = clean.shape
     hb, wb = -(-h // block), -(-w // block)
     pad = ((0, hb * block - h), (0, wb * block - w))
@@ -196,7 +205,7 @@ def _blocks(clean: Array, z: Array, block: int):
     y0 = jnp.min(jnp.where(on, cells(rows), big), axis=-1)
     x1 = jnp.max(jnp.where(on, cells(cols), -1), axis=-1)
     y1 = jnp.max(jnp.where(on, cells(rows), -1), axis=-1)
-    return count, n_measured, zb, (x0, y0, x1, y1)
+    return _Blocks(count, n_measured, zb, jnp.where(measured, cells(z), 0.0), (x0, y0, x1, y1))
 
 
 def _components(active: Array) -> Array:
@@ -204,20 +213,25 @@ def _components(active: Array) -> Array:
     return connected_components(pixel_graph(jnp.zeros(active.shape), active, 1.0))
 
 
-def _main_part(active, labels, count, n_measured, zb, min_pixels, depth_gap, depth_gap_rel):
+def _main_part(active, labels, blocks: _Blocks, min_pixels, depth_gap, depth_gap_rel):
     """One round of the depth cut on every component of ``active`` at once: ``(main,
     rest)`` ``[Hb, Wb] bool``, the main part of each component of at least ``min_pixels``
     pixels (its largest connected piece near its median depth, or all of it when it has
-    too little depth or nothing is cut) and what is left of it."""
+    too little depth or nothing is cut) and what is left of it. A block is near when any
+    of its pixels is, or none has depth: a block that a closing filled with the wall
+    behind a thin arm still joins the arm to the body, as the arm's pixels do."""
+    count, n_measured = blocks.count, blocks.n_measured
     n = active.size
     flat = labels.reshape(-1)
     area = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(active, count, 0).reshape(-1))
     measured = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(active, n_measured, 0).reshape(-1))
     big = active & (area[labels] >= min_pixels)
     weights = jnp.where(big, n_measured, 0).reshape(-1)
-    med = group_median(flat, zb.reshape(-1), weights, n)[labels]
+    med = group_median(flat, blocks.depth.reshape(-1), weights, n)[labels]
     tol = jnp.maximum(depth_gap, depth_gap_rel * med)
-    near = big & ((jnp.abs(zb - med) <= tol) | (n_measured == 0))
+    z = blocks.pixels
+    near_pixel = (z > 0) & (jnp.abs(z - med[..., None]) <= tol[..., None])
+    near = big & (jnp.any(near_pixel, axis=-1) | (n_measured == 0))
     # The largest connected piece of each component's near part (ties: smallest label).
     sub = _components(near)
     sub_flat = sub.reshape(-1)
@@ -289,17 +303,15 @@ def person_blobs(
     z = jnp.asarray(depth, jnp.float32)
     frame_hw = mask.shape
     clean = closing(opening(mask, open_px), close_px)
-    count, n_measured, zb, pixel_box = _blocks(clean, z, block)
+    blocks = _blocks(clean, z, block)
     rules = (min_area, min_height, max_aspect)
     min_pixels = min_area * frame_hw[0] * frame_hw[1]
-    active = count > 0
+    active = blocks.count > 0
     areas, boxes = [], []
     for _ in range(rounds):  # static and small: unrolled
         labels = _components(active)
-        main, active = _main_part(
-            active, labels, count, n_measured, zb, min_pixels, depth_gap, depth_gap_rel
-        )
-        a, b = _round_blobs(main, labels, count, pixel_box, frame_hw, n, rules)
+        main, active = _main_part(active, labels, blocks, min_pixels, depth_gap, depth_gap_rel)
+        a, b = _round_blobs(main, labels, blocks.count, blocks.box, frame_hw, n, rules)
         areas.append(a)
         boxes.append(b)
     area, idx = lax.top_k(jnp.concatenate(areas), n)
@@ -307,13 +319,13 @@ def person_blobs(
     box = jnp.where(found[:, None], jnp.concatenate(boxes)[idx], 0.0)
     area = jnp.maximum(area, 0)
     confidence = jnp.where(found, person_confidence(box, area, frame_hw), 0.0)
-    return box, area, _box_depths(box, found, zb, n_measured, pixel_box), confidence
+    return box, area, _box_depths(box, found, blocks), confidence
 
 
-def _box_depths(box, found, zb, n_measured, pixel_box) -> Array:
+def _box_depths(box, found, blocks: _Blocks) -> Array:
     """``[n]`` median depth of the measured blocks whose pixels lie in each box (0: none)."""
-    x0, y0, x1, y1 = (p.reshape(-1) for p in pixel_box)
+    x0, y0, x1, y1 = (p.reshape(-1) for p in blocks.box)
     b = box[:, :, None]
     inside = (x0 >= b[:, 0]) & (x1 < b[:, 0] + b[:, 2]) & (y0 >= b[:, 1]) & (y1 < b[:, 1] + b[:, 3])
-    weights = jnp.where(inside, n_measured.reshape(-1), 0)  # [n, Hb * Wb]
-    return jnp.where(found, weighted_median(zb.reshape(-1), weights), 0.0)
+    weights = jnp.where(inside, blocks.n_measured.reshape(-1), 0)  # [n, Hb * Wb]
+    return jnp.where(found, weighted_median(blocks.depth.reshape(-1), weights), 0.0)
