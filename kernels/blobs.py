@@ -15,7 +15,7 @@ and confidence below are the ones the host detector calls:
    confidence is :func:`person_confidence`.
 
 Steps 2-3 run on blocks of ``block x block`` pixels (a block is foreground when any of
-its pixels is, and near a depth when any of its measured pixels is; a blob's median depth
+its pixels is, and near a depth when any of its pixels is or has no depth; a blob's median depth
 is that of its blocks' mean depths, weighted by their measured pixels), because the
 connected-components kernel (``graph.connected_components``) takes rows of at most 250
 cells and its cost grows with the area. Blocks keep the components of the cleaned mask:
@@ -172,40 +172,34 @@ def weighted_median(values: Array, weights: Array, top: float = 65536.0) -> Arra
     return _bisect_median(below, jnp.sum(weights, axis=-1), top)
 
 
-class _Blocks(NamedTuple):
-    count: Array  # [Hb, Wb] int32 pixels of the mask
-    n_measured: Array  # [Hb, Wb] int32 of them with depth
-    depth: Array  # [Hb, Wb] mm, their mean depth (0: none)
-    pixels: Array  # [Hb, Wb, block * block] mm, each pixel's depth (0: not in the mask or none)
-    box: tuple  # (x0, y0, x1, y1) [Hb, Wb] int32, the tight pixel box of the mask's pixels
+class _Grid(NamedTuple):
+    """The frame cut into blocks: ``[Hb, Wb, block * block]`` per pixel of each block."""
+
+    depth: Array  # mm (0: none)
+    col: Array  # int32 pixel column
+    row: Array  # int32 pixel row
 
 
-def _blocks(clean: Array, z: Array, block: int) -> _Blocks:
-    """Per block of ``clean [H, W]`` (``_Blocks``): pixel counts, the depths of its
-    measured pixels and their mean, and the tight box of its pixels, inclusive."""
-    h, w = clean.shape
+def _grid(z: Array, block: int) -> _Grid:
+    """``_Grid`` of ``z [H, W]`` mm; the frame is padded to whole blocks (no depth)."""
+    h, w = z.shape
     hb, wb = -(-h // block), -(-w // block)
-    pad = ((0, hb * block - h), (0, wb * block - w))
-    clean = jnp.pad(clean, pad)
-    z = jnp.pad(z, pad)
-
-    def cells(a):  # [Hb, Wb, block * block]
-        a = a.reshape(hb, block, wb, block).transpose(0, 2, 1, 3)
-        return a.reshape(hb, wb, block * block)
-
-    on = cells(clean)
-    measured = on & (cells(z) > 0)
-    count = jnp.sum(on, axis=-1).astype(jnp.int32)
-    n_measured = jnp.sum(measured, axis=-1).astype(jnp.int32)
-    z_sum = jnp.sum(jnp.where(measured, cells(z), 0.0), axis=-1)
-    zb = z_sum / jnp.maximum(n_measured, 1)
+    z = jnp.pad(z, ((0, hb * block - h), (0, wb * block - w)))
     rows, cols = jnp.meshgrid(jnp.arange(hb * block), jnp.arange(wb * block), indexing="ij")
-    big = jnp.int32(1 << 30)
-    x0 = jnp.min(jnp.where(on, cells(cols), big), axis=-1)
-    y0 = jnp.min(jnp.where(on, cells(rows), big), axis=-1)
-    x1 = jnp.max(jnp.where(on, cells(cols), -1), axis=-1)
-    y1 = jnp.max(jnp.where(on, cells(rows), -1), axis=-1)
-    return _Blocks(count, n_measured, zb, jnp.where(measured, cells(z), 0.0), (x0, y0, x1, y1))
+    return _Grid(*(_cells(a, block) for a in (z, cols, rows)))
+
+
+def _cells(a: Array, block: int) -> Array:
+    """``[H, W] -> [H / block, W / block, block * block]`` (``H``, ``W`` whole blocks)."""
+    hb, wb = a.shape[0] // block, a.shape[1] // block
+    a = a.reshape(hb, block, wb, block).transpose(0, 2, 1, 3)
+    return a.reshape(hb, wb, block * block)
+
+
+def _pad_cells(mask: Array, block: int) -> Array:
+    h, w = mask.shape
+    pad = ((0, -h % block), (0, -w % block))
+    return _cells(jnp.pad(mask, pad), block)
 
 
 def _components(active: Array) -> Array:
@@ -213,56 +207,66 @@ def _components(active: Array) -> Array:
     return connected_components(pixel_graph(jnp.zeros(active.shape), active, 1.0))
 
 
-def _main_part(active, labels, blocks: _Blocks, min_pixels, depth_gap, depth_gap_rel):
-    """One round of the depth cut on every component of ``active`` at once: ``(main,
-    rest)`` ``[Hb, Wb] bool``, the main part of each component of at least ``min_pixels``
-    pixels (its largest connected piece near its median depth, or all of it when it has
-    too little depth or nothing is cut) and what is left of it. A block is near when any
-    of its pixels is, or none has depth: a block that a closing filled with the wall
-    behind a thin arm still joins the arm to the body, as the arm's pixels do."""
-    count, n_measured = blocks.count, blocks.n_measured
-    n = active.size
-    flat = labels.reshape(-1)
-    area = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(active, count, 0).reshape(-1))
-    measured = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(active, n_measured, 0).reshape(-1))
-    big = active & (area[labels] >= min_pixels)
+def _sum_by(labels: Array, values: Array) -> Array:
+    """``[Hb * Wb]`` sums of ``values [Hb, Wb]`` by ``labels [Hb, Wb]``."""
+    n = labels.size
+    return jnp.zeros(n, values.dtype).at[labels.reshape(-1)].add(values.reshape(-1))
+
+
+def _main_part(pixels, labels, grid: _Grid, min_pixels, depth_gap, depth_gap_rel):
+    """One round of the depth cut on every blob of ``pixels [Hb, Wb, B] bool`` at once
+    (``labels``: their blocks' components): ``(main, rest)`` pixels, the main part of
+    each blob of at least ``min_pixels`` pixels (its largest connected piece of pixels
+    near its median depth or without depth, or all of it when it has too little depth or
+    nothing is cut) and what is left of it. A blob's median depth is that of its blocks'
+    mean depths, weighted by their measured pixels."""
+    n = labels.size
+    measured_px = pixels & (grid.depth > 0)
+    count = jnp.sum(pixels, axis=-1, dtype=jnp.int32)
+    n_measured = jnp.sum(measured_px, axis=-1, dtype=jnp.int32)
+    mean = jnp.sum(jnp.where(measured_px, grid.depth, 0.0), axis=-1) / jnp.maximum(n_measured, 1)
+    area = _sum_by(labels, count)
+    big = (count > 0) & (area[labels] >= min_pixels)
     weights = jnp.where(big, n_measured, 0).reshape(-1)
-    med = group_median(flat, blocks.depth.reshape(-1), weights, n)[labels]
+    med = group_median(labels.reshape(-1), mean.reshape(-1), weights, n)
+    med = med[labels][..., None]
     tol = jnp.maximum(depth_gap, depth_gap_rel * med)
-    z = blocks.pixels
-    near_pixel = (z > 0) & (jnp.abs(z - med[..., None]) <= tol[..., None])
-    near = big & (jnp.any(near_pixel, axis=-1) | (n_measured == 0))
-    # The largest connected piece of each component's near part (ties: smallest label).
+    near_px = pixels & big[..., None] & ((grid.depth == 0) | (jnp.abs(grid.depth - med) <= tol))
+    near = jnp.any(near_px, axis=-1)
+    # The largest connected piece of each blob's near part (ties: smallest label).
     sub = _components(near)
-    sub_flat = sub.reshape(-1)
-    sub_area = jnp.zeros(n, jnp.int32).at[sub_flat].add(jnp.where(near, count, 0).reshape(-1))
-    parent = jnp.zeros(n, jnp.int32).at[sub_flat].max(jnp.where(near, labels, 0).reshape(-1))
+    sub_area = _sum_by(sub, jnp.sum(near_px, axis=-1, dtype=jnp.int32))
+    parent = jnp.zeros(n, jnp.int32).at[sub.reshape(-1)].max(jnp.where(near, labels, 0).reshape(-1))
     best_area = jnp.zeros(n, jnp.int32).at[parent].max(sub_area)
     is_best = (sub_area > 0) & (sub_area == best_area[parent])
     best = jnp.full(n, n, jnp.int32).at[parent].min(jnp.where(is_best, jnp.arange(n), n))
-    piece = near & (sub == best[labels])
-    piece_area = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(piece, count, 0).reshape(-1))
+    piece = near_px & (sub == best[labels])[..., None]
+    piece_area = _sum_by(labels, jnp.sum(piece, axis=-1, dtype=jnp.int32))[labels]
     cut = (
-        (5 * measured[labels] >= area[labels])  # at least a fifth of it has depth
-        & (piece_area[labels] > 0)
-        & (piece_area[labels] < area[labels])
-    )
-    main = big & jnp.where(cut, piece, True)
-    return main, big & cut & ~piece
+        (5 * _sum_by(labels, n_measured)[labels] >= area[labels])  # a fifth has depth
+        & (piece_area > 0)
+        & (piece_area < area[labels])
+    )[..., None]
+    blob = pixels & big[..., None]
+    return jnp.where(cut, piece, blob), blob & cut & ~piece
 
 
-def _round_blobs(main, labels, count, pixel_box, frame_hw, n_out, rules):
-    """The ``n_out`` largest person-shaped main parts of one round: ``(area [n_out],
-    box [n_out, 4])`` (area -1: none)."""
-    n = main.size
+def _round_blobs(main, labels, grid: _Grid, frame_hw, n_out, rules):
+    """The ``n_out`` largest person-shaped main parts ``main [Hb, Wb, B]`` of one round:
+    ``(area [n_out], box [n_out, 4])`` (area -1: none)."""
+    n = labels.size
     flat = labels.reshape(-1)
-    on = main.reshape(-1)
-    area = jnp.zeros(n, jnp.int32).at[flat].add(jnp.where(on, count.reshape(-1), 0))
-    # One scatter-min for the four sides: (x0, y0, -x1, -y1).
-    x0, y0, x1, y1 = (b.reshape(-1) for b in pixel_box)
-    sides = jnp.stack([x0, y0, -x1, -y1], axis=-1)
+    area = _sum_by(labels, jnp.sum(main, axis=-1, dtype=jnp.int32))
     big = jnp.int32(1 << 30)
-    lo = jnp.full((n, 4), big).at[flat].min(jnp.where(on[:, None], sides, big))
+    # Each block's tight box of its pixels, then one scatter-min of (x0, y0, -x1, -y1).
+    sides = [
+        jnp.min(jnp.where(main, grid.col, big), axis=-1),
+        jnp.min(jnp.where(main, grid.row, big), axis=-1),
+        jnp.min(jnp.where(main, -grid.col, big), axis=-1),
+        jnp.min(jnp.where(main, -grid.row, big), axis=-1),
+    ]
+    sides = jnp.stack([a.reshape(-1) for a in sides], axis=-1)
+    lo = jnp.full((n, 4), big).at[flat].min(sides)
     box = jnp.stack([lo[:, 0], lo[:, 1], -lo[:, 2] - lo[:, 0] + 1, -lo[:, 3] - lo[:, 1] + 1], -1)
     box = box.astype(jnp.float32)
     person = (area > 0) & person_shaped(box[:, 2], box[:, 3], area, frame_hw, *rules)
@@ -303,15 +307,15 @@ def person_blobs(
     z = jnp.asarray(depth, jnp.float32)
     frame_hw = mask.shape
     clean = closing(opening(mask, open_px), close_px)
-    blocks = _blocks(clean, z, block)
+    grid = _grid(z, block)
     rules = (min_area, min_height, max_aspect)
     min_pixels = min_area * frame_hw[0] * frame_hw[1]
-    active = blocks.count > 0
+    pixels = _pad_cells(clean, block)
     areas, boxes = [], []
     for _ in range(rounds):  # static and small: unrolled
-        labels = _components(active)
-        main, active = _main_part(active, labels, blocks, min_pixels, depth_gap, depth_gap_rel)
-        a, b = _round_blobs(main, labels, blocks.count, blocks.box, frame_hw, n, rules)
+        labels = _components(jnp.any(pixels, axis=-1))
+        main, pixels = _main_part(pixels, labels, grid, min_pixels, depth_gap, depth_gap_rel)
+        a, b = _round_blobs(main, labels, grid, frame_hw, n, rules)
         areas.append(a)
         boxes.append(b)
     area, idx = lax.top_k(jnp.concatenate(areas), n)
@@ -319,13 +323,22 @@ def person_blobs(
     box = jnp.where(found[:, None], jnp.concatenate(boxes)[idx], 0.0)
     area = jnp.maximum(area, 0)
     confidence = jnp.where(found, person_confidence(box, area, frame_hw), 0.0)
-    return box, area, _box_depths(box, found, blocks), confidence
+    return box, area, _box_depths(box, found, _pad_cells(clean, block), grid), confidence
 
 
-def _box_depths(box, found, blocks: _Blocks) -> Array:
-    """``[n]`` median depth of the measured blocks whose pixels lie in each box (0: none)."""
-    x0, y0, x1, y1 = (p.reshape(-1) for p in blocks.box)
+def _box_depths(box, found, clean, grid: _Grid) -> Array:
+    """``[n]`` median depth of the measured pixels of ``clean [Hb, Wb, B]`` in each box,
+    to a block: the blocks whose pixels lie in the box, each its mean depth weighted by
+    its measured pixels (0: none)."""
+    measured = clean & (grid.depth > 0)
+    n_measured = jnp.sum(measured, axis=-1)
+    mean = jnp.sum(jnp.where(measured, grid.depth, 0.0), axis=-1) / jnp.maximum(n_measured, 1)
+    big = jnp.int32(1 << 30)
+    x0 = jnp.min(jnp.where(clean, grid.col, big), axis=-1).reshape(-1)
+    y0 = jnp.min(jnp.where(clean, grid.row, big), axis=-1).reshape(-1)
+    x1 = jnp.max(jnp.where(clean, grid.col, -1), axis=-1).reshape(-1)
+    y1 = jnp.max(jnp.where(clean, grid.row, -1), axis=-1).reshape(-1)
     b = box[:, :, None]
     inside = (x0 >= b[:, 0]) & (x1 < b[:, 0] + b[:, 2]) & (y0 >= b[:, 1]) & (y1 < b[:, 1] + b[:, 3])
-    weights = jnp.where(inside, blocks.n_measured.reshape(-1), 0)  # [n, Hb * Wb]
-    return jnp.where(found, weighted_median(blocks.depth.reshape(-1), weights), 0.0)
+    weights = jnp.where(inside, n_measured.reshape(-1), 0)  # [n, Hb * Wb]
+    return jnp.where(found, weighted_median(mean.reshape(-1), weights), 0.0)

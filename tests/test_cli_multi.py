@@ -110,17 +110,22 @@ def test_multi_reads_the_quiet_frames_under_the_default_background(folder):
 
 @pytest.fixture(scope="module")
 def crowded(tmp_path_factory):
-    """Two walkers crossing in every frame (no empty frame to learn a background from)."""
-    seq = make_people_sequence("two_crossing", 6, n_frames=16)
+    """Two people standing apart in every frame (``two_crossing``'s frame 30, ten times):
+    a scene never seen empty."""
+    seq = make_people_sequence("two_crossing", 6, n_frames=31)
     root = tmp_path_factory.mktemp("crowded")
     (root / "rgb").mkdir()
     (root / "depth").mkdir()
-    for t, (c, d) in enumerate(zip(seq.colour, seq.depth, strict=True)):
-        cv2.imwrite(str(root / "rgb" / f"{t:06d}.png"), cv2.cvtColor(c, cv2.COLOR_RGB2BGR))
-        cv2.imwrite(str(root / "depth" / f"{t:06d}.png"), d)
+    truth = people_truth(seq)
+    truth = truth[truth[:, 0] == 30]
     with open(root / "gt.txt", "w") as fh:
-        for f, i, x, y, w, h, _, _, v in people_truth(seq):
-            fh.write(f"{int(f) + 1},{int(i)},{x + 1:g},{y + 1:g},{w:g},{h:g},1,1,{v:.2f}\n")
+        for t in range(10):
+            cv2.imwrite(
+                str(root / "rgb" / f"{t:06d}.png"), cv2.cvtColor(seq.colour[30], cv2.COLOR_RGB2BGR)
+            )
+            cv2.imwrite(str(root / "depth" / f"{t:06d}.png"), seq.depth[30])
+            for _, i, x, y, w, h, _, _, v in truth:
+                fh.write(f"{t + 1},{int(i)},{x + 1:g},{y + 1:g},{w:g},{h:g},1,1,{v:.2f}\n")
     return root
 
 
@@ -132,8 +137,9 @@ def _mota(folder, tmp_path, capsys, background: str) -> float:
 
 
 def test_multi_without_background_frames_reads_each_frames_scene(crowded, tmp_path, capsys):
-    # Nobody ever leaves: the quiet frames (--background auto) hold the walkers, and the
-    # births against them miss them; each frame's own scene (--background none) finds them.
+    # Nobody ever moves: the quiet frames (--background auto, what --multi read before
+    # --background none) hold the people, and births against them find nobody; each
+    # frame's own scene (--background none) finds both.
     framed = _mota(crowded, tmp_path, capsys, "none")
     quiet = _mota(crowded, tmp_path, capsys, "auto")
     assert framed > 50.0 and framed > quiet + 20.0, (framed, quiet)
