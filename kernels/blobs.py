@@ -307,9 +307,24 @@ def person_blobs(
     z = jnp.asarray(depth, jnp.float32)
     frame_hw = mask.shape
     clean = closing(opening(mask, open_px), close_px)
-    grid = _grid(z, block)
-    rules = (min_area, min_height, max_aspect)
     min_pixels = min_area * frame_hw[0] * frame_hw[1]
+
+    def blobs(clean, z):
+        return _blobs(clean, z, n, block, rounds, depth_gap, depth_gap_rel, min_pixels, rules)
+
+    def nobody(clean, z):
+        zeros = jnp.zeros((n,), jnp.float32)
+        return jnp.zeros((n, 4), jnp.float32), jnp.zeros((n,), jnp.int32), zeros, zeros
+
+    rules = (min_area, min_height, max_aspect)
+    # Fewer cleaned pixels than the least person: nobody (unbatched, the rounds are skipped).
+    return lax.cond(jnp.sum(clean) >= min_pixels, blobs, nobody, clean, z)
+
+
+def _blobs(clean, z, n, block, rounds, depth_gap, depth_gap_rel, min_pixels, rules):
+    """:func:`person_blobs` after the opening and closing."""
+    frame_hw = clean.shape
+    grid = _grid(z, block)
     pixels = _pad_cells(clean, block)
     areas, boxes = [], []
     for _ in range(rounds):  # static and small: unrolled
