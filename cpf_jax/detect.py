@@ -45,6 +45,7 @@ import jax
 import numpy as np
 
 from cpf_jax.kernels.background import Background, foreground_mask
+from cpf_jax.kernels.blobs import confidence_shares, person_shaped
 from cpf_jax.types import Frame
 
 __all__ = [
@@ -134,12 +135,15 @@ def _main_depth_part(blob: np.ndarray, z: np.ndarray, c: DetectConfig):
     return blob, None
 
 
-def _person_box(blob: np.ndarray, h: int, c: DetectConfig):
-    """The tight xywh box of ``blob`` if it is person-shaped (rule 4), else None."""
+def _person_box(blob: np.ndarray, c: DetectConfig):
+    """The tight xywh box of ``blob`` if it is person-shaped (rule 4,
+    ``kernels.blobs.person_shaped``), else None."""
     ys, xs = np.nonzero(blob)
     bx, by = xs.min(), ys.min()
     bw, bh = xs.max() - bx + 1, ys.max() - by + 1
-    if bh < c.min_height * h or bw > c.max_aspect * bh:
+    if not person_shaped(
+        bw, bh, int(blob.sum()), blob.shape, c.min_area, c.min_height, c.max_aspect
+    ):
         return None
     return bx, by, bw, bh
 
@@ -177,10 +181,9 @@ def _mask_blobs(mask: np.ndarray, depth: np.ndarray, config: DetectConfig) -> li
             blob, rest = _main_depth_part(labels == k, z, config)
             if rest is not None:
                 queue.append(rest)
-            area = int(blob.sum())
-            box = _person_box(blob, h, config) if area >= min_px else None
+            box = _person_box(blob, config)
             if box is not None:
-                found.append((area, box))
+                found.append((int(blob.sum()), box))
     found.sort(key=lambda t: -t[0])
     return found
 
@@ -224,19 +227,11 @@ class Detection(NamedTuple):
 
 def person_confidence(box, area: int, frame_hw: tuple[int, int]) -> tuple[float, tuple[str, ...]]:
     """``(confidence, doubts)`` that the blob of ``area`` pixels with tight ``box`` is a
-    whole upright person (module docstring), and what lowered it, in words."""
+    whole upright person (module docstring; the shares of
+    ``kernels.blobs.confidence_shares``), and what lowered it, in words."""
     x, y, w, h = (float(v) for v in box)
     frame_h, frame_w = frame_hw
-    fill = area / max(w * h, 1.0)
-    shares = {
-        f"it fills {100 * fill:.0f} % of its box": np.clip((fill - 0.15) / 0.25, 0, 1),
-        f"it is about as wide as tall (height / width {h / max(w, 1):.1f})": np.clip(
-            (h / max(w, 1.0) - 0.9) / 0.9, 0, 1
-        ),
-        f"it is {100 * h / frame_h:.0f} % of the frame's height": np.clip(
-            (h / frame_h - 0.15) / 0.15, 0, 1
-        ),
-    }
+    shares = np.asarray(confidence_shares(np.float32([x, y, w, h]), area, frame_hw), np.float64)
     edges = [
         name
         for name, touches in (
@@ -247,10 +242,14 @@ def person_confidence(box, area: int, frame_hw: tuple[int, int]) -> tuple[float,
         )
         if touches
     ]
-    if edges:
-        shares[f"the frame's {' and '.join(edges)} edge cuts it"] = 0.6 ** len(edges)
-    confidence = float(np.prod(list(shares.values())))
-    return confidence, tuple(why for why, share in shares.items() if share < 1)
+    doubts = (
+        f"it fills {100 * area / max(w * h, 1.0):.0f} % of its box",
+        f"it is about as wide as tall (height / width {h / max(w, 1.0):.1f})",
+        f"it is {100 * h / frame_h:.0f} % of the frame's height",
+        f"the frame's {' and '.join(edges)} edge cuts it",
+    )
+    confidence = float(np.prod(shares))
+    return confidence, tuple(why for why, share in zip(doubts, shares, strict=True) if share < 1)
 
 
 def find_person_scored(

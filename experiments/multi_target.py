@@ -78,6 +78,7 @@ BLOB_BEHIND = {"config.blob_evidence": True, "life.hidden_share": 0.3}
 #: fields and their values.
 TRAIN_VARIANTS = {
     "default": {},
+    "births in JAX (device_births)": {"config.device_births": True},
     "blob evidence + found behind 0.3": BLOB_BEHIND,
     "blob evidence": {"config.blob_evidence": True},
     "found behind 0.3": {"life.hidden_share": 0.3},

@@ -87,15 +87,15 @@ def test_multi_option_errors(folder, capsys, extra, message):
 
 
 def test_multi_reads_the_quiet_frames_under_the_default_background(folder):
-    # --background none (each frame its own scene) is the single-person default; --multi's
-    # births need a background model, so it takes --background auto's quiet frames.
+    # --background none (each frame its own scene) is the single-person default; --multi
+    # takes --background auto's quiet frames unless told --background none.
     from cpf_jax.cli.inputs import open_inputs
     from cpf_jax.cli.multi import check_multi_options
-    from cpf_jax.cli.options import FRAMELESS, build_parser
+    from cpf_jax.cli.options import build_parser
     from cpf_jax.io import open_source
 
     args = build_parser().parse_args([str(folder), "--multi", "--no-progress"])
-    assert args.background == FRAMELESS
+    assert args.background is None
     check_multi_options(args)
     with open_source(folder) as source:
         inputs = open_inputs(args, source)
@@ -106,3 +106,40 @@ def test_multi_reads_the_quiet_frames_under_the_default_background(folder):
     )
     with open_source(folder) as source:
         assert open_inputs(single, source).background is None
+
+
+@pytest.fixture(scope="module")
+def crowded(tmp_path_factory):
+    """Two people standing apart in every frame (``two_crossing``'s frame 30, ten times):
+    a scene never seen empty."""
+    seq = make_people_sequence("two_crossing", 6, n_frames=31)
+    root = tmp_path_factory.mktemp("crowded")
+    (root / "rgb").mkdir()
+    (root / "depth").mkdir()
+    truth = people_truth(seq)
+    truth = truth[truth[:, 0] == 30]
+    with open(root / "gt.txt", "w") as fh:
+        for t in range(10):
+            cv2.imwrite(
+                str(root / "rgb" / f"{t:06d}.png"), cv2.cvtColor(seq.colour[30], cv2.COLOR_RGB2BGR)
+            )
+            cv2.imwrite(str(root / "depth" / f"{t:06d}.png"), seq.depth[30])
+            for _, i, x, y, w, h, _, _, v in truth:
+                fh.write(f"{t + 1},{int(i)},{x + 1:g},{y + 1:g},{w:g},{h:g},1,1,{v:.2f}\n")
+    return root
+
+
+def _mota(folder, tmp_path, capsys, background: str) -> float:
+    argv = [str(folder), "--multi", "--mot", str(tmp_path / f"{background}.txt")]
+    argv += ["--mot-gt", str(folder / "gt.txt"), "--background", background]
+    assert main([*argv, "--particles", "64", "--max-people", "3", "--no-progress"]) == 0
+    return float(capsys.readouterr().out.split("MOTA ")[1].split(" %")[0])
+
+
+def test_multi_without_background_frames_reads_each_frames_scene(crowded, tmp_path, capsys):
+    # Nobody ever moves: the quiet frames (--background auto, what --multi read before
+    # --background none) hold the people, and births against them find nobody; each
+    # frame's own scene (--background none) finds both.
+    framed = _mota(crowded, tmp_path, capsys, "none")
+    quiet = _mota(crowded, tmp_path, capsys, "auto")
+    assert framed > 50.0 and framed > quiet + 20.0, (framed, quiet)

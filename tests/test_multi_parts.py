@@ -343,7 +343,8 @@ def test_same_place_against_a_loop():
     check_kernel(claim.same_place, _same_place_loop, case(), batch=[case(), case()])
 
 
-def test_host_candidates_and_the_callback_agree():
+@pytest.mark.parametrize("on_device", [False, True])
+def test_host_candidates_and_the_step_agree(on_device):
     import jax
 
     mask = np.zeros((120, 160), bool)
@@ -359,10 +360,10 @@ def test_host_candidates_and_the_callback_agree():
     assert np.all(boxes[2] == 0) and conf[2] == 0
     np.testing.assert_allclose(z[:2], [2000, 3000])
     assert conf[0] > 0.5 and conf[1] > 0.5
-    got = jax.jit(lambda m, d: births.detect_candidates(config, 3, m, d))(mask, depth)
+    got = jax.jit(lambda m, d: births.detect_candidates(config, 3, m, d, on_device))(mask, depth)
     np.testing.assert_allclose(np.asarray(got.box), boxes)
     np.testing.assert_allclose(np.asarray(got.depth), z)
-    many = jax.jit(jax.vmap(lambda m, d: births.detect_candidates(config, 3, m, d)))(
+    many = jax.jit(jax.vmap(lambda m, d: births.detect_candidates(config, 3, m, d, on_device)))(
         np.stack([mask, np.zeros_like(mask)]), np.stack([depth, depth])
     )
     np.testing.assert_allclose(np.asarray(many.box[0]), boxes)

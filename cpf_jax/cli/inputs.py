@@ -53,11 +53,13 @@ def open_inputs(args: argparse.Namespace, source) -> Inputs:
     uses_depth = args.model != "rgb" or args.points is not None or auto
     register = _registrar(calib, uses_depth=uses_depth)
     # A background model: the RGB-D models' foreground (unless each frame is its own
-    # scene, --background none), --init auto's person finder and --multi's births (with
-    # --background none, the quiet frames of --background auto).
+    # scene, --background none; --multi's births then read it too) and --init auto's
+    # person finder (with --background none, the quiet frames of --background auto).
     multi = getattr(args, "multi", False)
-    frameless = args.background == FRAMELESS and not multi
-    need_bg = (args.model != "rgb" and not frameless) or auto or multi
+    if args.background is None:  # the default: each frame's own scene; --multi's quiet frames
+        args.background = "auto" if multi else FRAMELESS
+    frameless = args.background == FRAMELESS
+    need_bg = (args.model != "rgb" and not frameless) or auto
     note = None
     if live:
         start, box, bg_frames, frames = _open_live(args, source, register, need_bg, auto)

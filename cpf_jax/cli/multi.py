@@ -1,7 +1,8 @@
 """``cpf-track --multi``: every person in a recording or a stream, with identities.
 
 The driver is thin, as for one person: the inputs of :mod:`cpf_jax.cli.inputs` (frames
-registered to colour, the background model; no start box), the multi-person tracker of
+registered to colour, the background model, or with ``--background none`` each frame's
+own scene; no start box), the multi-person tracker of
 :mod:`cpf_jax.multi` jitted once, one ``step`` per frame, and each frame's people written
 as they come: MOTChallenge lines (``--mot``), the Rerun log (each identity in its own
 colour with its id, births, losses and deaths as text events). At the end a summary, and
@@ -49,8 +50,10 @@ def check_multi_options(args: argparse.Namespace) -> None:
         args.model = "grid-occlusion"
 
 
-def _model(args: argparse.Namespace, options, frame_hw: tuple[int, int]):
-    """The tracker's config, parameters and filter from the command line."""
+def _model(args: argparse.Namespace, options, frame_hw: tuple[int, int], frameless: bool):
+    """The tracker's config, parameters and filter from the command line; ``frameless``:
+    no background model, each frame's scene read in the frame (``births.frame_scene``)
+    at a person's width, ``PERSON_SHARE`` of the frame's."""
     from cpf_jax.multi import MultiConfig, build_multi_filter, default_multi_params
     from cpf_jax.rgbd import RGBDConfig
 
@@ -61,11 +64,13 @@ def _model(args: argparse.Namespace, options, frame_hw: tuple[int, int]):
         hierarchical=not args.no_hierarchical,
         resampler=args.resampler,
         body_term=not args.no_body_term,
-        side_scene=None,
+        side_scene=RGBDConfig().side_scene if frameless else None,
         **config_kw,
     )
-    config = MultiConfig(rgbd=rgbd, max_targets=args.max_people)
     person = (PERSON_SHARE[0] * frame_hw[1], PERSON_SHARE[1] * frame_hw[0])
+    config = MultiConfig(
+        rgbd=rgbd, max_targets=args.max_people, scene_width=person[0] if frameless else None
+    )
     config = config.with_window(person, frame_hw)
     params = default_multi_params(config)
     params = params._replace(rgbd=param_options(args, params.rgbd))
@@ -106,9 +111,8 @@ def track_multi(args: argparse.Namespace, source, options) -> int:
     from cpf_jax.types import Frame
 
     inputs = open_inputs(args, source)
-    if inputs.background is None:
-        raise UsageError(f"{source.describe()}: --multi needs a background model")
-    config, params, filt = _model(args, options, (source.size[1], source.size[0]))
+    frameless = inputs.background is None
+    config, params, filt = _model(args, options, (source.size[1], source.size[0]), frameless)
     context = Context(background=inputs.background)
     writer = MotWriter(args.mot) if args.mot else None
     logger = None

@@ -260,9 +260,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--background",
-        default=FRAMELESS,
-        help="background frames for the RGB-D models: 'none' (default: each frame's scene "
-        "from the frame itself, for a camera that moves or a scene never seen empty), 'auto' "
+        default=None,
+        help="background frames for the RGB-D models: 'none' (default, with --multi 'auto': "
+        "each frame's scene from the frame itself, for a camera that moves or a scene never "
+        "seen empty), 'auto' "
         "(a static camera: up to 25 frames with the least foreground among up to 150 evenly "
         "spaced ones; a live stream's first 25), N (evenly spaced over the recording; a live "
         "stream's first N), A:B (frames A..B-1, 0-based) or 'empty' (a synthetic scenario's "

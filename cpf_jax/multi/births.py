@@ -1,18 +1,20 @@
 """New people: the person detector on the foreground no target claims, and free slots for them.
 
-The detector is :func:`cpf_jax.detect.mask_person_boxes` (connected blobs cut to one depth,
-person-shaped; OpenCV on the host), called from the jitted step through
-``jax.pure_callback`` on the mask of foreground pixels that no confirmed or tentative
-target explains (``claim.claimed_mask``), after the opening and closing of
-``detect.clean_mask``. At most ``MultiConfig.max_births`` blobs, largest first, come back
-as fixed-size arrays. A blob starts a tentative target when its confidence
-(``detect.person_confidence``) reaches ``life.birth_confidence``, it is at least
-``life.birth_aspect`` as wide as tall (narrower: a limb, or a sliver of someone at the
-frame's edge) and it is not part of a found target (``part_of_found``); a blob that is part
-of one (within its box grown by ``claim.reanchor_margin``, at least
-``claim.reanchor_aspect`` as wide as tall) and makes its box larger starts that target
-again on the union (``reanchor``: he walked into view legs first). Each new target takes a
-free slot, or the slot of the lost target closest to being forgotten when none is free.
+The detector is the host's (:func:`host_candidates`: :mod:`cpf_jax.detect`'s opening and
+closing, connected blobs cut to one depth, person-shaped; OpenCV), called from the jitted
+step through ``jax.pure_callback``, or with ``MultiConfig.device_births`` the same rules in
+JAX (``kernels.blobs.person_blobs``, :func:`device_candidates`: no host round trip, on
+blocks of pixels, so blobs a few pixels apart can join), on the mask of foreground pixels
+that no confirmed or tentative target explains (``claim.claimed_mask``). At most
+``MultiConfig.max_births`` blobs, largest first, come back as fixed-size arrays. A blob
+starts a tentative target when its confidence (``detect.person_confidence``) reaches
+``life.birth_confidence``, it is at least ``life.birth_aspect`` as wide as tall (narrower:
+a limb, or a sliver of someone at the frame's edge) and it is not part of a found target
+(``part_of_found``); a blob that is part of one (within its box grown by
+``claim.reanchor_margin``, at least ``claim.reanchor_aspect`` as wide as tall) and makes
+its box larger starts that target again on the union (``reanchor``: he walked into view
+legs first). Each new target takes a free slot, or the slot of the lost target closest to
+being forgotten when none is free.
 """
 
 from __future__ import annotations
@@ -26,13 +28,20 @@ import numpy as np
 from jax import Array
 
 from cpf_jax.detect import DetectConfig, clean_mask, mask_person_boxes, person_confidence
+from cpf_jax.kernels.background import Background, behind_plane, side_scene
+from cpf_jax.kernels.blobs import detector_block, person_blobs
 from cpf_jax.multi.claim import same_place
-from cpf_jax.multi.config import FREE, LOST
+from cpf_jax.multi.config import FREE, LOST, MultiConfig
+from cpf_jax.rgbd.observe import no_background
+from cpf_jax.types import Frame
 
 __all__ = [
     "Candidates",
     "host_candidates",
+    "callback_candidates",
     "detect_candidates",
+    "device_candidates",
+    "frame_scene",
     "part_of_found",
     "reanchor",
     "free_slot_order",
@@ -50,7 +59,8 @@ def host_candidates(
     config: DetectConfig, n: int, mask: np.ndarray, depth: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``Candidates`` fields (NumPy, ``n`` rows) of the person-shaped blobs of a foreground
-    ``mask [H, W]`` over ``depth [H, W]`` mm: the host side of :func:`detect_candidates`."""
+    ``mask [H, W]`` over ``depth [H, W]`` mm: :func:`detect_candidates` on the host
+    (``detect.clean_mask`` and ``detect.mask_person_boxes``), its reference."""
     mask = np.asarray(mask, bool)
     depth = np.asarray(depth)
     clean = clean_mask(mask, config).astype(bool)
@@ -68,10 +78,15 @@ def host_candidates(
     return out, conf, z
 
 
-def detect_candidates(config: DetectConfig, n: int, mask: Array, depth: Array) -> Candidates:
-    """The person-shaped blobs of ``mask [H, W] bool`` (module docstring), from inside
-    ``jit``, ``vmap`` (one host call per item) and ``lax.scan``; a mask with fewer pixels
-    than the detector's least person (``min_area``) is not sent to the host."""
+#: Rounds of the depth cut (``kernels.blobs.person_blobs``): a person, the chair he
+#: touches and a second person behind both are three.
+CUT_ROUNDS = 3
+
+
+def callback_candidates(config: DetectConfig, n: int, mask: Array, depth: Array) -> Candidates:
+    """:func:`host_candidates` from inside ``jit``, ``vmap`` (one host call per item) and
+    ``lax.scan``; a mask with fewer pixels than the detector's least person (``min_area``)
+    is not sent to the host."""
     shapes = (
         jax.ShapeDtypeStruct((n, 4), jnp.float32),
         jax.ShapeDtypeStruct((n,), jnp.float32),
@@ -90,9 +105,65 @@ def detect_candidates(config: DetectConfig, n: int, mask: Array, depth: Array) -
     def nobody(mask, depth):
         return tuple(jnp.zeros(s.shape, s.dtype) for s in shapes)
 
-    # Fewer foreground pixels than the least person: no call to the host.
     enough = jnp.sum(mask) >= config.min_area * mask.size
     return Candidates(*jax.lax.cond(enough, call, nobody, mask, depth))
+
+
+def detect_candidates(
+    config: DetectConfig, n: int, mask: Array, depth: Array, on_device: bool = False
+) -> Candidates:
+    """The ``n`` largest person-shaped blobs of ``mask [H, W] bool`` over ``depth [H, W]``
+    mm (module docstring): :func:`device_candidates` with ``on_device``, else
+    :func:`callback_candidates`."""
+    if on_device:
+        return device_candidates(config, n, mask, depth)
+    return callback_candidates(config, n, mask, depth)
+
+
+def device_candidates(config: DetectConfig, n: int, mask: Array, depth: Array) -> Candidates:
+    """The ``n`` largest person-shaped blobs of ``mask [H, W] bool`` over ``depth [H, W]``
+    mm (module docstring), pure JAX (``jit``, ``vmap``, ``lax.scan``); on blocks of
+    ``kernels.blobs.detector_block(W)`` pixels. A mask with fewer pixels than the
+    detector's least person (``min_area``) is not examined."""
+    block = detector_block(mask.shape[-1])
+
+    def examine(mask, depth):
+        box, _, z, confidence = person_blobs(
+            mask,
+            depth,
+            n,
+            open_px=config.open_px,
+            close_px=config.close_px,
+            depth_gap=config.depth_gap,
+            depth_gap_rel=config.depth_gap_rel,
+            min_area=config.min_area,
+            min_height=config.min_height,
+            max_aspect=config.max_aspect,
+            block=block,
+            rounds=CUT_ROUNDS,
+        )
+        return Candidates(box, confidence, z)
+
+    def nobody(mask, depth):
+        return Candidates(
+            jnp.zeros((n, 4), jnp.float32),
+            jnp.zeros((n,), jnp.float32),
+            jnp.zeros((n,), jnp.float32),
+        )
+
+    # Fewer foreground pixels than the least person: nobody (unbatched, not examined).
+    enough = jnp.sum(mask) >= config.min_area * mask.size
+    return jax.lax.cond(enough, examine, nobody, mask, depth)
+
+
+def frame_scene(config: MultiConfig, frame: Frame) -> Background:
+    """The scene without people read in ``frame`` itself, for a tracker without a
+    background model (``config.scene_width`` set): every pixel unseen (``no_background``,
+    so each slot's RGB-D filter reads its own scene, ``rgbd.filter.unseen_scene``), its
+    depth the row's scene at ``config.rgbd.side_scene`` times a person's width
+    (``kernels.background.side_scene``): what stands out from it, nearer, is someone."""
+    offsets = jnp.asarray(config.rgbd.side_scene, jnp.float32) * config.scene_width
+    return behind_plane(no_background(frame), side_scene(frame.depth, offsets))
 
 
 def part_of_found(

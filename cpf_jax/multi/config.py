@@ -34,6 +34,12 @@ class MultiConfig:
     ``detect`` the person detector's thresholds on the foreground no target claims;
     ``blob_evidence`` whether a target's evidence leaves out the pixels joined at another
     target's depth to that target's claimed pixels (``claim.blob_reach``).
+    ``scene_width`` (pixels, a person's width) reads the scene without people in each
+    frame instead of a background model (``births.frame_scene``, for a camera that moves
+    or a scene never seen empty; with ``rgbd.side_scene`` set), None: ``Context.background``.
+    ``device_births`` runs the person detector in JAX (``births.device_candidates``)
+    instead of on the host through ``jax.pure_callback``; off, because its block-level
+    connectivity joins blobs that the host keeps apart on real footage.
     """
 
     rgbd: RGBDConfig = RGBDConfig(side_scene=None, n_particles=200)
@@ -42,8 +48,15 @@ class MultiConfig:
     detect: DetectConfig = DetectConfig()
     slot_loop: str = "map"
     blob_evidence: bool = False
+    scene_width: float | None = None
+    device_births: bool = False
 
     def __post_init__(self) -> None:
+        if self.scene_width is not None and (self.scene_width <= 0 or self.rgbd.side_scene is None):
+            raise ValueError(
+                f"scene_width must be None or > 0 with rgbd.side_scene set, got "
+                f"{self.scene_width} and {self.rgbd.side_scene}"
+            )
         if self.max_targets < 1:
             raise ValueError(f"max_targets must be >= 1, got {self.max_targets}")
         if self.max_births < 1:

@@ -178,7 +178,7 @@ def add_births(
     seen_z = claim.box_depths(config.rgbd, obs, boxes)
     seen_gate = depth_tolerance(params.rgbd, seen_z)
     cand = births.detect_candidates(
-        config.detect, config.max_births, obs.foreground & ~mine, frame.depth
+        config.detect, config.max_births, obs.foreground & ~mine, frame.depth, config.device_births
     )
     sure = (cand.confidence >= params.life.birth_confidence) & (cand.box[:, 2] >= 1.0)
     aspect = cand.box[:, 2] / jnp.maximum(cand.box[:, 3], 1.0)
@@ -235,14 +235,18 @@ def multi_init(
     """Slots on ``frame``: ``boxes [M, 4]`` (``M <= max_targets``; None: none) as confirmed
     targets with identities ``1..M``, then the birth stage on the rest of the frame."""
     check_frame(frame, needs_depth=True)
-    if context is None or context.background is None:
+    if config.scene_width is not None:
+        background = births.frame_scene(config, frame)
+    elif context is None or context.background is None:
         raise ValueError(
             "the multi-person tracker needs Context(background=...): the scene without "
-            "people, against which it finds them (kernels.background.median_background)"
+            "people, against which it finds them (kernels.background.median_background), "
+            "or MultiConfig.scene_width to read it in each frame"
         )
+    else:
+        background = as_background(context.background, frame)
     k = config.max_targets
     height, width = frame.colour.shape[:2]
-    background = as_background(context.background, frame)
     m = 0 if boxes is None else int(np.shape(boxes)[0])
     if m > k:
         raise ValueError(f"{m} initial boxes but max_targets is {k}")
@@ -335,6 +339,8 @@ def multi_step(
     k = config.max_targets
     k_slots, k_birth = jax.random.split(key)
     tr = state.tracks
+    if config.scene_width is not None:
+        state = state._replace(background=births.frame_scene(config, frame))
     # claim
     pred = claim.predict_targets(params.rgbd, state.slots)
     claiming = (tr.status == ACTIVE) | (tr.status == TENTATIVE)
