@@ -237,8 +237,8 @@ def time_layer2(scene: Scene, config: CascadeConfig, repeats: int) -> dict:
     surf = surface(seg)
     geo = geodesic(seg, surf)
     bm = pb.assemble_body(seg, surf, *geo)
-    keys = tuple(jax.random.split(key))
-    xy, vel, _, z_pred = pf.point_predict(cfg, pp, keys, state, box)
+    keys = tuple(jax.random.split(key, 3))
+    xy, vel, hidden, _, _, z_pred = pf.point_predict(cfg, pp, keys, state, box)
 
     @jax.jit
     def pixels(bm_, xy_):
@@ -253,9 +253,9 @@ def time_layer2(scene: Scene, config: CascadeConfig, repeats: int) -> dict:
         lw = pf.geodesic_term(pp.weights, bm_, s, rc_) + pf.depth_term(pp.weights, bm_, rc_, z)
         return jnp.where(on_, lw, -jnp.inf)
 
-    lw, _, _ = jax.jit(lambda bm_, s, p_, z: pf.point_weights(cfg, pp.weights, bm_, s, p_, z))(
-        bm, state, xy, z_pred
-    )
+    lw, _, _ = jax.jit(
+        lambda bm_, s, p_, h, z: pf.point_weights(cfg, pp.weights, bm_, s, p_, h, z)
+    )(bm, state, xy, hidden, z_pred)
     lw = jax.vmap(lambda w: w - jax.nn.logsumexp(w))(jnp.where(jnp.isfinite(lw), lw, -30.0))
     particles = jnp.concatenate([xy, vel], -1)
     recovered = jnp.zeros(lw.shape[0], bool)
