@@ -111,7 +111,7 @@ def test_claimed_mask_against_a_loop():
     )
 
 
-def _evidence_loop(foreground, depth, owner, boxes, z, gate):
+def _evidence_loop(foreground, depth, owner, boxes, z, gate, reach=None):
     out = np.zeros(len(z))
     for k, (x, y, w, h) in enumerate(boxes):
         n = 0
@@ -120,6 +120,9 @@ def _evidence_loop(foreground, depth, owner, boxes, z, gate):
                 inside = x <= c + 0.5 < x + w and y <= r + 0.5 < y + h
                 d = float(depth[r, c])
                 mine = owner[r, c] in (-1, k)
+                if reach is not None:
+                    theirs = any(reach[j, r, c] for j in range(len(z)) if j != k)
+                    mine = mine and (reach[k, r, c] or not theirs)
                 n += inside and foreground[r, c] and d > 0 and abs(d - z[k]) < gate[k] and mine
         out[k] = n / max(w * h, 1.0) if z[k] > 0 else 0.0
     return out
@@ -187,19 +190,7 @@ def _blob_reach_reference(foreground, depth, owner, z, gate):
 
 def _evidence_blob_loop(foreground, depth, owner, boxes, z, gate):
     reach = _blob_reach_reference(foreground, depth, owner, z, gate)
-    out = np.zeros(len(z))
-    for k, (x, y, w, h) in enumerate(boxes):
-        n = 0
-        for r in range(H):
-            for c in range(W):
-                inside = x <= c + 0.5 < x + w and y <= r + 0.5 < y + h
-                d = float(depth[r, c])
-                mine = owner[r, c] in (-1, k)
-                theirs = any(reach[j, r, c] for j in range(len(z)) if j != k)
-                mine = mine and (reach[k, r, c] or not theirs)
-                n += inside and foreground[r, c] and d > 0 and abs(d - z[k]) < gate[k] and mine
-        out[k] = n / max(w * h, 1.0) if z[k] > 0 else 0.0
-    return out
+    return _evidence_loop(foreground, depth, owner, boxes, z, gate, reach)
 
 
 def test_blob_evidence_leaves_out_the_rest_of_a_claimed_persons_blob():

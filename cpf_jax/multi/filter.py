@@ -28,6 +28,7 @@ as confirmed targets (identities 1, 2, ...) and runs the birth stage on the firs
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -288,6 +289,28 @@ def behind(
     return (status == ACTIVE) & ~seen_now & (visible.hidden >= life.hidden_share) & shown
 
 
+def seen_behind(
+    config: MultiConfig,
+    life,
+    obs,
+    depth: Array,
+    owner: Array,
+    reach: Array | None,
+    tr,
+    grown: Array,
+    z: Array,
+    gate: Array,
+    seen_now: Array,
+) -> tuple[Array, Array]:
+    """``([K] bool, [K, 4] xywh)``: the targets seen behind nearer ones (``behind``, on
+    ``claim.visible_part`` of their ``grown`` predicted boxes) and the tight box of what
+    shows of each; it runs only when ``life.hidden_share`` can be reached (at most 1)."""
+    visible = claim.visible_part(obs.foreground, depth, owner, grown, z, gate, reach)
+    looks = tracks.seen_distance(_colours(config, obs, visible.box), tr)
+    looks = jnp.where(jnp.sum(tr.appearance, axis=-1) > 0, looks, 0.0)
+    return behind(life, tr.status, seen_now, visible, looks), visible.box
+
+
 def coasting_box(predicted: Array, shown: Array) -> Array:
     """``[K, 4]`` xywh: where a target seen behind another is, its ``predicted`` box moved
     to the columns of what shows of him (``shown``): the head above an occluder's shoulder
@@ -368,18 +391,21 @@ def multi_step(
     evidence = claim.evidence(
         obs.foreground, frame.depth, owner, infos.estimate, pred.depth, pred.gate, reach
     )
-    visible = claim.visible_part(
-        obs.foreground, frame.depth, owner, grown, pred.depth, pred.gate, reach
-    )
     seen_now = ~infos.lost & (evidence >= params.life.min_evidence)
-    looks = tracks.seen_distance(_colours(config, obs, visible.box), tr)
-    looks = jnp.where(jnp.sum(tr.appearance, axis=-1) > 0, looks, 0.0)
-    hidden = behind(params.life, tr.status, seen_now, visible, looks)
+    hidden, shown = jax.lax.cond(
+        params.life.hidden_share <= 1.0,
+        functools.partial(seen_behind, config, params.life, obs, frame.depth, owner, reach, tr),
+        lambda *_: (jnp.zeros_like(seen_now), jnp.zeros_like(grown)),
+        grown,
+        pred.depth,
+        pred.gate,
+        seen_now,
+    )
     # A target seen behind another is reported with what shows of him, and coasts.
-    infos = infos._replace(box=jnp.where(hidden[:, None], visible.box, infos.box))
-    slots = coast(slots, hidden, coasting_box(pred.box, visible.box))
+    infos = infos._replace(box=jnp.where(hidden[:, None], shown, infos.box))
+    slots = coast(slots, hidden, coasting_box(pred.box, shown))
     state = state._replace(slots=slots)
-    boxes = jnp.where(hidden[:, None], visible.box, union(infos.estimate, infos.box))
+    boxes = jnp.where(hidden[:, None], shown, union(infos.estimate, infos.box))
     tr, events, found = _judge(config, params, state, infos, obs, boxes, seen_now, hidden)
     # confirm
     z = _target_depths(slots)
