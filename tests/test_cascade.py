@@ -162,7 +162,7 @@ def test_rgb_variant_box_is_the_colour_layer(walk):
     colour = build_colour_filter(colour_cfg)
     cparams = default_colour_params()
     k_init, k_run = jax.random.split(jax.random.PRNGKey(5))
-    state = colour.init(
+    state = jax.jit(colour.init)(
         cparams, jax.random.split(k_init)[0], Frame(frames.colour[0], frames.depth[0]), box
     )
     step = jax.jit(colour.step)
@@ -206,14 +206,17 @@ def test_a_step_reports_the_surface_it_segmented(walk):
     params = _params(config)
     context = Context(background=bg, points=jnp.asarray(seq.joints2d[0, idx] + 0.5))
     frames = [Frame(jnp.asarray(seq.colour[t]), jnp.asarray(seq.depth[t])) for t in (0, 1)]
-    key = jax.random.PRNGKey(0)
+    key, box0 = jax.random.PRNGKey(0), jnp.asarray(seq.boxes[0])
     for cfg, reported in ((config, True), (base, False)):
         filt = build_cascade(cfg)
-        state = jax.jit(filt.init)(params, key, frames[0], jnp.asarray(seq.boxes[0]), context)
-        _, info = jax.jit(filt.step)(params, key, state, frames[1])
         if not reported:
+            # Whether the field exists is static: the shapes say it without a compile.
+            state = jax.eval_shape(filt.init, params, key, frames[0], box0, context)
+            _, info = jax.eval_shape(filt.step, params, key, state, frames[1])
             assert info.points.surface is None
             continue
+        state = jax.jit(filt.init)(params, key, frames[0], box0, context)
+        _, info = jax.jit(filt.step)(params, key, state, frames[1])
         shown = jax.jit(body_surface, static_argnums=0)(cfg, frames[1], info.box_used, bg)
         got, want = np.asarray(info.points.surface), np.asarray(shown)
         assert got.shape == want.shape == (cfg.points.window[0] * cfg.points.window[1], 3)
