@@ -1075,3 +1075,28 @@ def test_no_retrace_between_frames(frames):
         _, rects = _cloud_rects(20 + seed)
         f(bins[seed], rects, q).block_until_ready()
     assert len(traces) == 1
+
+
+def test_box_histograms_count_each_rect_in_its_own_window(frames):
+    # ``each``: every rect counted over a window of its own (placed on it, moved back inside
+    # the frame at the edges); a rect larger than that window sends the call to the shared
+    # window or the frame. Against the reference, under jit and vmap.
+    _, hsvs, bins = frames
+    cells = np.array(
+        [
+            [40, 30, 70, 70],
+            [70, 30, 100, 70],
+            [300, 200, 330, 245],
+            [-10, -5, 20, 30],
+            [5, 5, 5, 9],
+        ],
+        np.int32,
+    )
+    big = np.concatenate([cells[:2], [[10, 10, 90, 120]]]).astype(np.int32)
+    count = jax.jit(lambda b, r: H.box_histograms(b, r, NB, WINDOW, each=(48, 32)))
+    for rects in (cells, big, EDGE_RECTS[:4]):
+        np.testing.assert_array_equal(np.asarray(count(bins[0], rects)), _ref_hists(hsvs[0], rects))
+    both = jax.jit(jax.vmap(lambda b: H.box_histograms(b, cells, NB, WINDOW, each=(48, 32))))
+    out = np.asarray(both(np.stack(bins[:2])))
+    for i in range(2):
+        np.testing.assert_array_equal(out[i], _ref_hists(hsvs[i], cells))
