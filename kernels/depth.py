@@ -258,6 +258,8 @@ def vertex_normals(points: Array, weights: Array, smooth: int = 0) -> tuple[Arra
     # Each spoke serves two or three faces: materialise the spokes once (fused into every
     # face, XLA on CPU would recompute them).
     spokes, vecs, lens = lax.optimization_barrier((spokes, vecs, lens))
+    ax = ay = az = jnp.zeros_like(px)
+    nfaces = jnp.zeros(px.shape, jnp.int32)
     # Faces: consecutive spokes (k, k+1); where a diagonal spoke k+1 is missing,
     # the right-angle face between its straight neighbours (k, k+2) instead, so
     # that a graph without diagonal edges (far surfaces) still has faces.
@@ -265,27 +267,23 @@ def vertex_normals(points: Array, weights: Array, smooth: int = 0) -> tuple[Arra
     faces += [
         (k, (k + 2) % 8, spokes[k] & spokes[(k + 2) % 8] & ~spokes[k + 1]) for k in (0, 2, 4, 6)
     ]
-    # Each face's weight (angle over cross-product length, oriented) is materialised
-    # once: fused into the three sums below, XLA on CPU would recompute its square roots,
-    # division and arccos for each of x, y and z.
-    weights, counted = lax.optimization_barrier(
-        tuple(zip(*(_face_weight(vecs, lens, px, py, pz, *face) for face in faces), strict=True))
-    )
-    ax = ay = az = jnp.zeros_like(px)
-    nfaces = jnp.zeros(px.shape, jnp.int32)
-    for (ka, kb, _), f, ok in zip(faces, weights, counted, strict=True):
-        c1, c2, c3 = _cross(vecs[ka], vecs[kb])
+    for ka, kb, ok in faces:
+        (a1, a2, a3), (b1, b2, b3) = vecs[ka], vecs[kb]
+        c1 = a2 * b3 - a3 * b2
+        c2 = a3 * b1 - a1 * b3
+        c3 = a1 * b2 - a2 * b1
+        ncr = jnp.sqrt(c1 * c1 + c2 * c2 + c3 * c3)
+        ok = ok & (ncr > 0)
+        cosang = (a1 * b1 + a2 * b2 + a3 * b3) / jnp.where(ok, lens[ka] * lens[kb], 1.0)
+        ang = _acos(cosang)
+        # orient towards the sensor (n . p < 0) and weight by the angle
+        sgn = jnp.where(c1 * px + c2 * py + c3 * pz > 0, -1.0, 1.0)
+        f = jnp.where(ok, sgn * ang / jnp.where(ok, ncr, 1.0), 0.0)
         ax, ay, az = ax + f * c1, ay + f * c2, az + f * c3
         nfaces = nfaces + ok.astype(jnp.int32)
-    # The sums are materialised before the box sums pad them: fused into the pad, their
-    # arithmetic would run per padded element behind a bounds test.
-    ax, ay, az, nfaces = lax.optimization_barrier((ax, ay, az, nfaces))
     if smooth > 0:
         own = nfaces > 0
-        # Materialised too: each normal's norm reads all three smoothed sums.
-        ax, ay, az = lax.optimization_barrier(
-            tuple(jnp.where(own, _box_sum(c, smooth), 0.0) for c in (ax, ay, az))
-        )
+        ax, ay, az = (jnp.where(own, _box_sum(c, smooth), 0.0) for c in (ax, ay, az))
     acc = jnp.stack([ax, ay, az], -1)
     norm = jnp.sqrt(jnp.sum(acc * acc, -1, keepdims=True))
     valid = (nfaces > 0) & (norm[..., 0] > 0)
@@ -294,27 +292,6 @@ def vertex_normals(points: Array, weights: Array, smooth: int = 0) -> tuple[Arra
     towards = jnp.where(pn > 0, towards, jnp.array([0.0, 0.0, -1.0], jnp.float32))
     n = jnp.where(valid[..., None], acc / jnp.where(norm > 0, norm, 1.0), towards)
     return n, valid
-
-
-def _cross(a: tuple[Array, ...], b: tuple[Array, ...]) -> tuple[Array, Array, Array]:
-    """Cross product ``a x b`` of two vectors given as coordinate planes."""
-    (a1, a2, a3), (b1, b2, b3) = a, b
-    return a2 * b3 - a3 * b2, a3 * b1 - a1 * b3, a1 * b2 - a2 * b1
-
-
-def _face_weight(vecs, lens, px, py, pz, ka: int, kb: int, ok: Array) -> tuple[Array, Array]:
-    """``(f, ok) [H, W]`` of the face between spokes ``ka`` and ``kb``: its angle at the
-    vertex over the length of its cross product, signed so that ``f (a x b)`` points towards
-    the sensor (0 where the face does not count), and whether it counts."""
-    a, b = vecs[ka], vecs[kb]
-    c1, c2, c3 = _cross(a, b)
-    ncr = jnp.sqrt(c1 * c1 + c2 * c2 + c3 * c3)
-    ok = ok & (ncr > 0)
-    cosang = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / jnp.where(ok, lens[ka] * lens[kb], 1.0)
-    ang = _acos(cosang)
-    # orient towards the sensor (n . p < 0) and weight by the angle
-    sgn = jnp.where(c1 * px + c2 * py + c3 * pz > 0, -1.0, 1.0)
-    return jnp.where(ok, sgn * ang / jnp.where(ok, ncr, 1.0), 0.0), ok
 
 
 _ACOS = (
