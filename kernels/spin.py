@@ -136,6 +136,7 @@ def spin_images(
     support_angle_deg: float = 60.0,
     patch_radius: int = 32,
     batch_size: int = 32,
+    needed: Array | None = None,
 ) -> tuple[Array, Array]:
     """Spin images of query pixels over the valid points of a depth window.
 
@@ -147,6 +148,9 @@ def spin_images(
     float32, complete [N] bool)``. Each distinct query pixel is computed once
     (particles share pixels), ``batch_size`` pixels at a time in a loop that
     stops after the last distinct one; results do not depend on either.
+    ``needed [N] bool`` (optional) names the queries whose images the caller reads:
+    the others get an empty image and ``complete`` False without being computed (they
+    stand in for a needed pixel, so they add no distinct pixel to the loop).
     """
     p = jnp.asarray(points, jnp.float32)
     nrm = jnp.asarray(normals, jnp.float32)
@@ -166,8 +170,14 @@ def spin_images(
     shape = q.shape[:-1]
     qf = q.reshape(-1, 2)
     batch = min(batch_size, max(qf.shape[0], 1))
+    if needed is None:
+        imgs, complete = _map_distinct(one, qf, w, batch, (width, width))
+        return imgs.reshape(shape + (width, width)), complete.reshape(shape)
+    need = jnp.broadcast_to(jnp.asarray(needed, bool), shape).reshape(-1)
+    qf = jnp.where(need[:, None], qf, qf[jnp.argmax(need)])
     imgs, complete = _map_distinct(one, qf, w, batch, (width, width))
-    return imgs.reshape(shape + (width, width)), complete.reshape(shape)
+    imgs = jnp.where(need[:, None, None], imgs, 0.0)
+    return imgs.reshape(shape + (width, width)), (complete & need).reshape(shape)
 
 
 def _map_distinct(one, queries: Array, w: int, batch: int, image_shape: tuple[int, int]):

@@ -369,7 +369,7 @@ def test_background_option_forms():
 
 def test_says_when_steps_left_the_histogram_window(capsys):
     # A small box given on a person walking towards the camera (the upper body, a quarter
-    # of the person's area) outgrows the window sized for it and the window grown 1.6x
+    # of the person's area) outgrows the window sized for it and the grown windows
     # (window_ladder): the run says how many steps counted on the whole frame instead.
     # (The AR2 model's size trend carries particles past both: 5 of 29 steps here; the
     # default box on this scene stays inside the grown window.)

@@ -433,7 +433,7 @@ def test_info_reports_whether_the_window_path_ran(seq):
         grown = state.cloud.particles.at[0, 4:6].set(jnp.asarray(wh))
         big = state._replace(cloud=state.cloud._replace(particles=grown))
         infos.append(step(PARAMS, jax.random.key(1), big, f1)[1])
-    assert len(window_ladder(config.window, (H, W))) == 2
+    assert len(window_ladder(config.window, (H, W))) >= 2
     assert bool(infos[0].windowed) and not bool(infos[1].windowed)
     plain = build_colour_filter(ColourConfig(n_particles=64))
     state = plain.init(

@@ -474,11 +474,11 @@ def test_window_ladder_counts_a_cloud_wider_than_the_window_on_a_grown_window(fr
     # window but fits the grown one is counted there (reported windowed), exactly, under
     # jit and vmap, in a real branch; one that fits neither takes the general path.
     _, hsvs, bins = frames
-    assert H.window_ladder(WINDOW, (FH, FW)) == ((96, 128), (160, 208))
+    assert H.window_ladder(WINDOW, (FH, FW)) == ((96, 128), (128, 160), (160, 208))
     assert H.window_ladder((200, 300), (FH, FW)) == ((200, 300),)  # grown: > 85 % of frame
     assert H.window_ladder((400, 500), (FH, FW)) == ((FH, FW),)
     left, right = _cloud_rects(5, n=9, centre=(70, 120)), _cloud_rects(6, n=8, centre=(200, 120))
-    wide = np.concatenate([left[1], right[1]])  # about 170 x 70 px: rung 1 only
+    wide = np.concatenate([left[1], right[1]])  # about 170 x 70 px: the last rung only
     leaves = np.concatenate([_cloud_rects(4, n=16)[1], [[0, 100, FW, 140]]])
     assert not _origin_and_covers(wide)[1] and _origin_and_covers(wide, (160, 208))[1]
     assert bool(H.uses_window((FH, FW), jnp.asarray(wide), WINDOW))
@@ -501,7 +501,7 @@ def test_several_windows_are_tried_smallest_first_and_count_exactly(frames):
     small = (48, 64)
     windows = (small, WINDOW)
     assert H.window_sizes(windows) == (small, WINDOW) and H.window_sizes(WINDOW) == (WINDOW,)
-    assert H.window_ladder(windows, (FH, FW)) == (small, (96, 128), (160, 208))
+    assert H.window_ladder(windows, (FH, FW)) == (small, (96, 128), (128, 160), (160, 208))
     assert H.window_ladder((WINDOW, WINDOW), (FH, FW)) == H.window_ladder(WINDOW, (FH, FW))
     tight = _cloud_rects(7, n=12, size=(20, 24), spread=2.0)[1]  # inside 48 x 64
     fits = _cloud_rects(1, n=12)[1]  # leaves 48 x 64, inside 96 x 128
@@ -1075,3 +1075,28 @@ def test_no_retrace_between_frames(frames):
         _, rects = _cloud_rects(20 + seed)
         f(bins[seed], rects, q).block_until_ready()
     assert len(traces) == 1
+
+
+def test_box_histograms_count_each_rect_in_its_own_window(frames):
+    # ``each``: every rect counted over a window of its own (placed on it, moved back inside
+    # the frame at the edges); a rect larger than that window sends the call to the shared
+    # window or the frame. Against the reference, under jit and vmap.
+    _, hsvs, bins = frames
+    cells = np.array(
+        [
+            [40, 30, 70, 70],
+            [70, 30, 100, 70],
+            [300, 200, 330, 245],
+            [-10, -5, 20, 30],
+            [5, 5, 5, 9],
+        ],
+        np.int32,
+    )
+    big = np.concatenate([cells[:2], [[10, 10, 90, 120]]]).astype(np.int32)
+    count = jax.jit(lambda b, r: H.box_histograms(b, r, NB, WINDOW, each=(48, 32)))
+    for rects in (cells, big, EDGE_RECTS[:4]):
+        np.testing.assert_array_equal(np.asarray(count(bins[0], rects)), _ref_hists(hsvs[0], rects))
+    both = jax.jit(jax.vmap(lambda b: H.box_histograms(b, cells, NB, WINDOW, each=(48, 32))))
+    out = np.asarray(both(np.stack(bins[:2])))
+    for i in range(2):
+        np.testing.assert_array_equal(out[i], _ref_hists(hsvs[i], cells))

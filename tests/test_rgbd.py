@@ -1116,6 +1116,45 @@ def test_target_extent_is_the_main_run_of_the_target_pixels():
     assert float(ext.coverage) == 0.0
 
 
+def test_target_extent_in_a_window_equals_the_frame_wide_one():
+    """Counted in a static window placed on the search area (when it holds it) the extent is
+    the frame-wide one bit for bit, for estimates inside, at the edges of and beyond the
+    frame, and one whose search area the window cannot hold; under jit and vmap."""
+    cfg = RGBDConfig(variant="grid-occlusion")
+    params = default_rgbd_params(cfg)
+    frame, bg = _box_scene()
+    depth = np.asarray(frame.depth).copy()
+    depth[30:60, 110:112] = Z_PERSON
+    frame = Frame(frame.colour, jnp.asarray(depth))
+    obs = observe(cfg, params.foreground, frame, bg)
+    state = _state_at(_templates([float(Z_PERSON)] * 4))
+    ests = jnp.array(
+        [
+            [20.0, 10.0, 80.0, 100.0],
+            [20.3, 10.7, 79.6, 99.2],
+            [40.0, 30.0, 40.0, 30.0],  # rows 22-66 of the target's 20-99
+            [-30.0, -20.0, 60.0, 70.0],
+            [150.0, 100.0, 80.0, 90.0],
+            [500.0, 400.0, 30.0, 30.0],
+            [0.0, 0.0, 150.0, 150.0],  # the search area exceeds the window: frame-wide
+        ]
+    )
+
+    def extent(e, window):
+        return target_extent(params, state, obs, frame.depth, e, window)
+
+    full = jax.jit(jax.vmap(lambda e: extent(e, None)))(ests)
+    for got in (
+        jax.jit(jax.vmap(lambda e: extent(e, (120, 130))))(ests),
+        [jax.jit(lambda e: extent(e, (120, 130)))(e) for e in ests],
+        [jax.jit(lambda e: extent(e, (70, 130)))(e) for e in ests],
+    ):
+        got = jax.tree.map(lambda *x: jnp.stack(x), *got) if isinstance(got, list) else got
+        for a, b in zip(full, got, strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert float(full.coverage[0]) > 0.3
+
+
 def test_kept_lines_and_main_run_on_hand_made_counts():
     counts = jnp.array([0, 1, 0, 0, 3, 4, 0, 1, 0, 0, 0, 5, 5, 0], jnp.float32)
     kept = np.asarray(kept_lines(counts, jnp.float32(2.0)))

@@ -116,6 +116,34 @@ def test_spin_images_vmap_over_surfaces(surface):
     np.testing.assert_allclose(out[1], spin_loop(p2, n2, valid2, q, mres2), atol=2e-3, rtol=1e-4)
 
 
+def test_only_needed_queries_are_computed(surface):
+    # Queries not needed get an empty image and complete False; under jit the needed ones
+    # equal, bit for bit, the images computed without the mask, and under vmap the loop.
+    p, n, valid, mres = surface
+    q = np.array([[24, 20], [15, 25], [30, 12], [10, 18], [30, 12], [5, 5]])
+    needs = np.array([[1, 0, 1, 0, 1, 0], [0, 0, 0, 1, 0, 0]], bool)
+
+    def spin(m):
+        return sk.spin_images(p, n, valid, q, mres, patch_radius=40, batch_size=2, needed=m)
+
+    full, full_complete = (np.asarray(x) for x in jax.jit(lambda: spin(None))())
+    ref = spin_loop(p, n, valid, q, mres)
+    for batch in (
+        [jax.jit(spin)(m) for m in needs],
+        list(zip(*jax.jit(jax.vmap(spin))(needs), strict=True)),
+    ):
+        for (got, ok), need in zip(batch, needs, strict=True):
+            got, ok = np.asarray(got), np.asarray(ok)
+            np.testing.assert_allclose(got[need], ref[need], atol=2e-3, rtol=1e-4)
+            assert np.all(got[~need] == 0)
+            np.testing.assert_array_equal(ok, full_complete & need)
+    for m in needs:
+        np.testing.assert_array_equal(np.asarray(jax.jit(spin)(m)[0])[m], full[m])
+    assert full[3].sum() > 0
+    none, _ = spin(np.zeros(6, bool))  # nothing needed: every image empty
+    assert np.all(np.asarray(none) == 0)
+
+
 def test_shared_query_pixels_are_computed_once_and_read_by_each_query(surface):
     # Particles share pixels: each distinct pixel's image is computed once and every query
     # on it reads that image. Against the loop, with repeats in any order and a clipped

@@ -186,9 +186,9 @@ def _per_point(x: Array, p: int) -> Array:
     return jnp.broadcast_to(jnp.asarray(x, jnp.float32), (p,))[:, None]
 
 
-def _spin_images(config: PointConfig, bm: BodyModel, rc: Array):
+def _spin_images(config: PointConfig, bm: BodyModel, rc: Array, needed: Array | None = None):
     """Spin images (thesis 4.2, App. G) at window pixels ``rc [..., 2]``, bins of
-    ``spin_bin_factor`` mesh resolutions."""
+    ``spin_bin_factor`` mesh resolutions; only where ``needed`` (others empty)."""
     bin_size = config.spin_bin_factor * bm.mesh_resolution
     return sk.spin_images(
         bm.points,
@@ -200,6 +200,7 @@ def _spin_images(config: PointConfig, bm: BodyModel, rc: Array):
         support_angle_deg=config.support_angle_deg,
         patch_radius=config.patch_radius,
         batch_size=config.spin_batch,
+        needed=needed,
     )
 
 
@@ -358,7 +359,8 @@ def spin_term(
     ``rc [P, N, 2]``: similarity C (eq. 4.7) over the temperature, ``lambda`` half the
     median overlap over a point's particles on the body (``on [P, N]``)."""
     p = rc.shape[0]
-    imgs, comp = _spin_images(config, bm, rc)  # [P, N, W, W]
+    # Only the particles on the body are scored: the others' images are not computed.
+    imgs, comp = _spin_images(config, bm, rc, on)  # [P, N, W, W]
     ov = sk.overlap_count(imgs, state.ref_spin[:, None])
     ov_on = jnp.where(on, ov.astype(jnp.float32), jnp.nan)
     lam = jnp.nan_to_num(0.5 * jnp.nanmedian(ov_on, axis=1))

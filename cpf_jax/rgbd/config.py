@@ -179,6 +179,16 @@ class RGBDConfig:
             return self.window
         return (self.first_window, self.window)
 
+    @property
+    def cell_window(self) -> tuple[int, int] | None:
+        """The window one cell of a box is counted in by itself (``box_histograms``'s
+        ``each``): the first count window over ``k`` per side, rounded up to 8 px; None
+        for one cell or without a window."""
+        if self.k == 1 or self.window is None:
+            return None
+        h, w = self.count_windows[0]
+        return (-(-h // (8 * self.k)) * 8, -(-w // (8 * self.k)) * 8)
+
     def with_window(
         self,
         box_wh: tuple[float, float],

@@ -258,7 +258,7 @@ def rgbd_step(
     vote = w @ post.p_cell  # [C]
     voted = vote > params.occlusion.vote_threshold
     target_occluded = jnp.mean(voted.astype(jnp.float32)) > 0.5
-    extent = target_extent(params, state, obs, frame.depth, est)
+    extent = target_extent(params, state, obs, frame.depth, est, config.window)
     # Nothing at the target's depth in or around the estimate: it is hidden (or lost),
     # whatever the cells' votes say.
     hidden = extent.coverage < params.target.min_coverage

@@ -74,11 +74,13 @@ def cell_statistics(
     config: RGBDConfig, obs: Observation, box_xywh: Array
 ) -> tuple[Array, Array, Array]:
     """Normalised colour histograms ``[C, B]``, median foreground depths ``[C]`` (mm, from
-    the depth histogram) and depth sample counts ``[C]`` of one box's cells, counted in the
-    histogram window when it holds the box."""
+    the depth histogram) and depth sample counts ``[C]`` of one box's cells, each counted in
+    a window of its own (``config.cell_window``) when they fit one, else in the histogram
+    window when it holds the box."""
     rects = box_ops.xywh_to_rect(grid_cells(box_xywh, config.k))
-    hist = box_histograms(obs.colour_bins, rects, config.n_bins, config.count_windows)
-    dh = box_histograms(obs.depth_bins, rects, config.depth_bins, config.count_windows)
+    windows, each = config.count_windows, config.cell_window
+    hist = box_histograms(obs.colour_bins, rects, config.n_bins, windows, each)
+    dh = box_histograms(obs.depth_bins, rects, config.depth_bins, windows, each)
     med, total = histogram_quantile(dh, config.depth_bins, *config.depth_range)
     return normalise_counts(hist), med, total
 

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from cpf_jax.kernels.cells import grid_cells
+from cpf_jax.kernels.histogram import batch_all
 from cpf_jax.rgbd.config import RGBDConfig
 from cpf_jax.rgbd.observe import Observation
 from cpf_jax.rgbd.params import ReportParams
@@ -54,11 +55,56 @@ def main_run(counts: Array, kept: Array, gap: Array) -> Array:
     return kept & (run == jnp.argmax(totals[:-1]))
 
 
-def target_extent(params, state, obs: Observation, depth: Array, est: Array) -> Extent:
+def _line_counts(like: Array, tight: Array, inside: Array) -> tuple[Array, Array, Array]:
+    """Target pixels ``like & inside`` ``[h, w]`` per column ``[w]`` and per row ``[h]``, and
+    those also ``tight`` (their sum)."""
+    t = (like & inside).astype(jnp.float32)
+    return jnp.sum(t, axis=0), jnp.sum(t, axis=1), jnp.sum(t * tight)
+
+
+def _search_counts(like: Array, tight: Array, bounds: Array, window) -> tuple[Array, Array, Array]:
+    """``_line_counts`` of the pixels whose centres lie in ``bounds = (x0, y0, x1, y1)``,
+    over the frame or, when they all lie in one, over a window of static shape ``(h, w)``
+    placed on them (``lax.cond``). Counts of pixels are exact whatever the order of the
+    sums, so both give the same numbers; the window spares the frame-wide passes."""
+    height, width = like.shape
+    x0, y0, x1, y1 = (bounds[i] for i in range(4))
+
+    def inside(rows: Array, cols: Array) -> Array:
+        rows = rows.astype(jnp.float32) + 0.5
+        cols = cols.astype(jnp.float32) + 0.5
+        return ((rows >= y0) & (rows < y1))[:, None] & ((cols >= x0) & (cols < x1))[None]
+
+    def frame(_):
+        return _line_counts(like, tight, inside(jnp.arange(height), jnp.arange(width)))
+
+    if window is None:
+        return frame(None)
+    wh, ww = min(window[0], height), min(window[1], width)
+    # Rows and columns that may hold an inside centre, a line wider on each side than the
+    # bounds' rounding can reach; empty when last < first.
+    r0, c0 = jnp.maximum(jnp.floor(y0) - 1, 0), jnp.maximum(jnp.floor(x0) - 1, 0)
+    r1, c1 = jnp.minimum(jnp.ceil(y1) + 1, height - 1), jnp.minimum(jnp.ceil(x1) + 1, width - 1)
+    oy = jnp.clip(r0, 0, height - wh).astype(jnp.int32)
+    ox = jnp.clip(c0, 0, width - ww).astype(jnp.int32)
+    fits = ((r1 < r0) | (r1 < oy + wh)) & ((c1 < c0) | (c1 < ox + ww))
+
+    def windowed(_):
+        cut = [jax.lax.dynamic_slice(a, (oy, ox), (wh, ww)) for a in (like, tight)]
+        cols, rows, held = _line_counts(*cut, inside(oy + jnp.arange(wh), ox + jnp.arange(ww)))
+        cols = jax.lax.dynamic_update_slice(jnp.zeros((width,), jnp.float32), cols, (ox,))
+        rows = jax.lax.dynamic_update_slice(jnp.zeros((height,), jnp.float32), rows, (oy,))
+        return cols, rows, held
+
+    return jax.lax.cond(batch_all(fits), windowed, frame, None)
+
+
+def target_extent(params, state, obs: Observation, depth: Array, est: Array, window=None) -> Extent:
     """The target's pixels in the estimate ``[4]`` grown by ``report.margin`` per side:
     their tight box (main runs of lines with ``report.min_pixels``), coverage and held
     coverage (``Extent``). Pixels without depth are left out: at depth edges and on dark
-    hair they cannot be told from an occluder's."""
+    hair they cannot be told from an occluder's. They are counted in a static ``window =
+    (h, w)`` placed on the search area when it holds it (else over the frame)."""
     rp: ReportParams = params.report
     height, width = depth.shape
     like, tight = target_pixels(params, state, obs, depth)
@@ -69,14 +115,12 @@ def target_extent(params, state, obs: Observation, depth: Array, est: Array) -> 
     y1 = est[1] + est[3] * (1 + m)
     cols = jnp.arange(width, dtype=jnp.float32) + 0.5
     rows = jnp.arange(height, dtype=jnp.float32) + 0.5
-    inside = ((rows >= y0) & (rows < y1))[:, None] & ((cols >= x0) & (cols < x1))[None]
-    t = (like & inside).astype(jnp.float32)
-    held = jnp.sum(t * tight) / jnp.maximum(est[2] * est[3], 1.0)
-    col_count, row_count = jnp.sum(t, axis=0), jnp.sum(t, axis=1)
+    col_count, row_count, n_held = _search_counts(like, tight, jnp.stack([x0, y0, x1, y1]), window)
+    held = n_held / jnp.maximum(est[2] * est[3], 1.0)
     col_n = main_run(col_count, kept_lines(col_count, rp.min_pixels), rp.gap * est[2])
     row_n = main_run(row_count, kept_lines(row_count, rp.min_pixels), rp.gap * est[3])
     ok = jnp.any(col_n) & jnp.any(row_n)
-    coverage = jnp.sum(t) / jnp.maximum(est[2] * est[3], 1.0)
+    coverage = jnp.sum(col_count) / jnp.maximum(est[2] * est[3], 1.0)
     big = jnp.float32(1e9)
     bx0 = jnp.min(jnp.where(col_n, cols - 0.5, big))
     bx1 = jnp.max(jnp.where(col_n, cols + 0.5, -big))
