@@ -48,9 +48,10 @@ p90_error_mm, drift_ratio, ...}}`` for the main case, plus the other cases),
 
     python experiments/depth_points.py [--frames 200] [--keys 3]
 
-``--train`` runs instead the hidden-point model's parts (``VARIANTS``), each switched on
-alone, on the training seeds (``TRAIN_SEEDS``; the tables above use seed 0, which the
-choice never sees) and writes ``depth_points_train.json`` and ``.md``::
+``--train`` runs instead the hidden-point model's parts, the motion model, the geodesic
+width and references and the anchor prior (``VARIANTS``) on the training seeds
+(``TRAIN_SEEDS``; the tables above use seed 0, which the choice never sees) and writes
+``depth_points_train.json`` and ``.md``::
 
     python experiments/depth_points.py --train --keys 2
 """
@@ -110,6 +111,8 @@ PARAM_KEYS = {
     "reacquire_spread": "motion.reacquire_spread",
     "hidden_log_weight": "weights.hidden_log_weight",
     "occlusion_margin": "weights.occlusion_margin",
+    "anchor_sigma_x": "weights.anchor_sigma_x",
+    "anchor_sigma_y": "weights.anchor_sigma_y",
 }
 # name: (generator overrides, use a background-subtraction foreground); inside a foreground
 # mask the body is every sizeable component (PointConfig.with_foreground).
@@ -138,32 +141,75 @@ def temporal_foreground(seq) -> np.ndarray:
 
 #: Training seeds of the variants' comparison (seed 0, the tables above, is evaluation).
 TRAIN_SEEDS = (1, 2, 3, 4)
-#: The hidden-point model's parts, each switched on alone over the model without them:
+#: The hidden-point model's parts, each switched on alone over the model without them, then
+#: the motion model, the geodesic width, the geodesic references that follow the estimate
+#: and the anchor prior over "report flags + bridge":
 #: name -> (PointConfig fields, point parameters, cases). "geodesic_max_dist_mm": None is
 #: the surface graph's edges also with a foreground; the hidden particles' motion is the
 #: visible one's unless the variant says otherwise.
 SAME_MOTION = {"motion.hidden_pos_noise": 2.0, "motion.hidden_velocity_decay": 0.5}
+#: The motion and geodesic width the hidden-point parts were compared with: a stiff model
+#: (2 px, 1 px/frame, decay 0.5) and a 40 mm geodesic likelihood.
+STIFF = {
+    "motion.pos_noise": 2.0,
+    "motion.vel_noise": 1.0,
+    "motion.velocity_decay": 0.5,
+    "weights.geo_sigma": 40.0,
+}
+#: A motion model that keeps up with a swinging hand (about 2.5 px/frame relative to the
+#: box, up to 12): wider position and velocity noise, velocity kept longer.
+SWING = {"motion.pos_noise": 4.0, "motion.vel_noise": 2.0, "motion.velocity_decay": 0.8}
 VARIANTS = {
-    "no flags": (dict(visibility="off", geodesic_max_dist_mm=None), {}, tuple(CASES)),
-    "bridge 160 mm": (dict(visibility="off"), {}, ("walk_across_medium",)),
+    "no flags": (dict(visibility="off", geodesic_max_dist_mm=None), STIFF, tuple(CASES)),
+    "bridge 160 mm": (dict(visibility="off"), STIFF, ("walk_across_medium",)),
     "particle flags": (
         dict(visibility="particles", reacquire=False, geodesic_max_dist_mm=None),
-        SAME_MOTION,
+        {**STIFF, **SAME_MOTION},
         ("walk_across_medium",),
     ),
     "particle flags + hidden motion": (
         dict(visibility="particles", reacquire=False, geodesic_max_dist_mm=None),
-        {},
+        STIFF,
         ("walk_across_medium",),
     ),
     "particle flags + re-acquire": (
         dict(visibility="particles", reacquire=True, geodesic_max_dist_mm=None),
-        SAME_MOTION,
+        {**STIFF, **SAME_MOTION},
         ("walk_across_medium",),
     ),
-    "points branch (all four)": (dict(visibility="particles", reacquire=True), {}, tuple(CASES)),
-    "report flags": (dict(visibility="report", geodesic_max_dist_mm=None), {}, tuple(CASES)),
-    "report flags + bridge": (dict(visibility="report"), {}, ("walk_across_medium",)),
+    "points branch (all four)": (
+        dict(visibility="particles", reacquire=True),
+        STIFF,
+        tuple(CASES),
+    ),
+    "report flags": (dict(visibility="report", geodesic_max_dist_mm=None), STIFF, tuple(CASES)),
+    "report flags + bridge": (dict(visibility="report"), STIFF, tuple(CASES)),
+    "report + bridge + swing motion": (dict(visibility="report"), {**STIFF, **SWING}, tuple(CASES)),
+    "report + bridge + swing + geo 70 mm": (
+        dict(visibility="report"),
+        {**STIFF, **SWING, "weights.geo_sigma": 70.0},
+        tuple(CASES),
+    ),
+    "report + bridge + swing + geo 100 mm": (
+        dict(visibility="report"),
+        {**STIFF, **SWING, "weights.geo_sigma": 100.0},
+        tuple(CASES),
+    ),
+    "report + bridge + stiff + anchor prior": (
+        dict(visibility="report", anchor_prior=True),
+        STIFF,
+        ("walk_across_medium",),
+    ),
+    "report + bridge + swing + geo 100 mm + follow geodesic": (
+        dict(visibility="report", adapt_geodesic=True),
+        {**STIFF, **SWING, "weights.geo_sigma": 100.0},
+        ("walk_across_medium",),
+    ),
+    "report + bridge + swing + geo 100 mm + anchor prior": (
+        dict(visibility="report", anchor_prior=True),
+        {**STIFF, **SWING, "weights.geo_sigma": 100.0},
+        tuple(CASES),
+    ),
 }
 
 

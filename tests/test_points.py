@@ -543,3 +543,96 @@ def test_joined_components_keep_the_person_at_the_box_centre_not_the_one_beside(
     np.testing.assert_array_equal(np.asarray(got_v[1]), want)
     with pytest.raises(ValueError, match="joined_max_dz_mm"):
         PointConfig(joined_max_dz_mm=0.0)
+
+
+def test_anchor_term_is_the_box_relative_gaussian_under_jit_and_vmap():
+    """``box_offsets``: offset from the box centre in box heights; ``anchor_term``: the
+    Gaussian log-density (without its constant) of the offsets about each point's anchor,
+    sigma across and down apart; a box twice as tall halves an offset's pixels' weight."""
+    wp = default_point_params().weights._replace(
+        anchor_sigma_x=jnp.asarray([0.2, 0.3]), anchor_sigma_y=jnp.float32(0.05)
+    )
+    box = jnp.asarray([40.0, 20.0, 50.0, 100.0])
+    xy = 60.0 + 30.0 * jax.random.normal(jax.random.PRNGKey(0), (2, 16, 2))
+    anchor = jnp.asarray([[0.0, 0.1], [-0.1, -0.3]])
+    b = np.asarray(box, np.float64)
+    off = (np.asarray(xy, np.float64) - (b[:2] + b[2:] / 2)) / b[3]
+    np.testing.assert_allclose(np.asarray(jax.jit(pf.box_offsets)(box, xy)), off, rtol=1e-5)
+    d = off - np.asarray(anchor)[:, None]
+    sx = np.array([0.2, 0.3])[:, None]
+    want = -0.5 * ((d[..., 0] / sx) ** 2 + (d[..., 1] / 0.05) ** 2)
+    got = jax.jit(pf.anchor_term)(wp, box, anchor, xy)
+    np.testing.assert_allclose(np.asarray(got), want, rtol=1e-4, atol=1e-3)
+    # vmapped over boxes: each box's own offsets
+    boxes = jnp.stack([box, box.at[3].set(200.0)])
+    got_v = jax.vmap(pf.anchor_term, in_axes=(None, 0, None, None))(wp, boxes, anchor, xy)
+    np.testing.assert_allclose(np.asarray(got_v[0]), want, rtol=1e-4, atol=1e-3)
+    assert not np.allclose(np.asarray(got_v[1]), want)
+    # a particle at its point's anchor has the prior's maximum, 0
+    at = (b[:2] + b[2:] / 2) + np.asarray(anchor) * b[3]
+    top = pf.anchor_term(wp, box, anchor, jnp.asarray(at, jnp.float32)[:, None])
+    np.testing.assert_allclose(np.asarray(top), 0.0, atol=1e-5)
+
+
+def test_anchor_prior_keeps_the_start_offset_and_pulls_the_estimate_to_it(sequence):
+    """``point_init`` stores each point's start offset in the box and ``step`` carries it;
+    with ``anchor_prior`` and a narrow prior about an anchor moved down the box, the
+    estimate moves down from the one without the prior (same key, same cloud)."""
+    frames, inputs = sequence
+    params = default_point_params()
+    params = params._replace(
+        weights=params.weights._replace(
+            anchor_sigma_x=jnp.float32(0.01), anchor_sigma_y=jnp.float32(0.01)
+        )
+    )
+    start, box0 = _start(frames), inputs.box[0]
+    b = np.asarray(box0, np.float64)
+    want = (np.asarray(start) - (b[:2] + b[2:] / 2)) / b[3]
+    means = {}
+    for prior in (False, True):
+        filt = build_point_filter(dataclasses.replace(BASE, anchor_prior=prior))
+        state = filt.init(
+            params,
+            jax.random.PRNGKey(0),
+            PointFrame(inputs.depth[0], box0),
+            box0,
+            Context(points=start),
+        )
+        np.testing.assert_allclose(np.asarray(state.anchor), want, rtol=1e-5, atol=1e-6)
+        state = state._replace(anchor=state.anchor + jnp.asarray([0.0, 0.1]))
+        new, info = jax.jit(filt.step)(
+            params, jax.random.PRNGKey(1), state, PointFrame(inputs.depth[1], inputs.box[1])
+        )
+        np.testing.assert_array_equal(np.asarray(new.anchor), np.asarray(state.anchor))
+        means[prior] = np.asarray(info.mean)
+    assert np.all(means[True][:, 1] > means[False][:, 1] + 0.3), means
+
+
+def test_geodesic_reference_update_moves_visible_reached_points_under_jit_and_vmap(sequence):
+    """``geodesic_reference_update``: ``ref + rate (g - ref)`` for a point reported visible
+    whose estimate is on the body and reached, ``ref`` for a hidden one or one off the body
+    (a plain loop over the points is the reference)."""
+    cfg = BASE
+    wp, bm, state, _ = _weight_inputs(sequence, cfg)
+    wp = wp._replace(geo_rate=jnp.float32(0.25))
+    body = np.argwhere(np.asarray(bm.body) & np.isfinite(np.asarray(bm.geodesic)).all(0))
+    off = np.argwhere(~np.asarray(bm.body))
+    rcs = np.stack([body[len(body) // 2], body[len(body) // 3], off[0]])  # [3, 2] (row, col)
+    xy = pb.pixel_centre(bm, jnp.asarray(rcs))
+    ref = jnp.asarray([[900.0], [1000.0], [1100.0]])
+    visible = jnp.asarray([True, False, True])
+    want = np.asarray(ref).copy()
+    g = np.asarray(bm.geodesic)
+    for i, (r, c) in enumerate(rcs):
+        if bool(visible[i]) and bool(np.asarray(bm.body)[r, c]):
+            want[i] += 0.25 * (g[:, r, c] - want[i])
+    got = jax.jit(lambda b, r, x, v: pf.geodesic_reference_update(cfg, wp, b, r, x, v))(
+        bm, ref, xy, visible
+    )
+    np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5)
+    assert want[0, 0] != 900.0 and want[1, 0] == 1000.0 and want[2, 0] == 1100.0
+    got_v = jax.vmap(
+        lambda r, v: pf.geodesic_reference_update(cfg, wp, bm, r, xy, v), in_axes=(0, 0)
+    )(jnp.stack([ref, ref + 10.0]), jnp.stack([visible, ~visible]))
+    np.testing.assert_allclose(np.asarray(got_v[0]), want, rtol=1e-5)
+    assert float(got_v[1][0, 0]) == 910.0 and float(got_v[1][1, 0]) != 1010.0

@@ -90,6 +90,12 @@ class PointConfig:
     # point's geodesic distance from the references near its last estimate
     # (``filter.point_reacquire``).
     reacquire: bool = True
+    # A prior on each point's offset in the box about its start offset
+    # (``points.filter.anchor_term``): the body model's say in where a hand can be.
+    anchor_prior: bool = False
+    # The geodesic references follow the distances under the visible estimates
+    # (``points.filter.geodesic_reference_update``) instead of staying at the first frame's.
+    adapt_geodesic: bool = False
     ess_threshold: float = 1.0  # 1.0: resample every frame (SIR)
     resampler: str = "systematic"
     max_sweeps: int = 64  # geodesic relaxation sweeps (converges in 3-8)

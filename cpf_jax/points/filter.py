@@ -9,10 +9,13 @@
     weigh      spin-image similarity C / temperature (eq. 4.7), and/or the geodesic
                deviation -(g - g0)^2 / (2 geo_sigma^2) from the reference point (4.3),
                combined as a product (thesis 6.2), plus a depth-consistency term; off the
-               body: no weight (masked, thesis 4.4)
+               body: no weight (masked, thesis 4.4); with ``anchor_prior`` a prior on the
+               particle's offset in the box about the point's start offset
     recover    a point whose particles are all off the body is re-drawn around the body
                pixel nearest its last estimate
     estimate   best particle (thesis Alg. 2-3) and weighted mean, in 2D and 3D
+    follow     with ``adapt_geodesic``, the geodesic references move towards the
+               distances under the visible estimates
     resample   per point, when ESS < ess_threshold * N
 
 With ``follow_box`` a particle first moves by the similarity that takes the previous box
@@ -66,6 +69,9 @@ __all__ = [
     "geodesic_term",
     "depth_term",
     "point_weights",
+    "box_offsets",
+    "anchor_term",
+    "geodesic_reference_update",
     "hidden_term",
     "hidden_evidence",
     "hidden_update",
@@ -97,6 +103,9 @@ class PointWeightParams(NamedTuple):
     depth_sigma: Array  # mm, width of the depth-consistency likelihood
     hidden_log_weight: Array  # log-weight of a hidden particle with a surface in front
     occlusion_margin: Array  # mm, how far in front of a point a surface must be to hide it
+    anchor_sigma_x: Array  # box heights, across: width of the prior about the start offset
+    anchor_sigma_y: Array  # box heights, down: width of the prior about the start offset
+    geo_rate: Array  # in (0, 1), per frame: how far a geodesic reference moves to the estimate's
 
 
 class PointEstimateParams(NamedTuple):
@@ -130,6 +139,9 @@ POINTS = PointParams(
         depth_sigma=P(40.0, "softplus"),
         hidden_log_weight=P(-3.0),
         occlusion_margin=P(80.0, "softplus"),
+        anchor_sigma_x=P(0.2, "softplus"),
+        anchor_sigma_y=P(0.06, "softplus"),
+        geo_rate=P(0.1, "sigmoid"),
     ),
     estimate=PointEstimateParams(joint_depth_offset=P(0.0)),
 )
@@ -155,12 +167,14 @@ class PointState(NamedTuple):
     particles: Array  # [P, N, 4] (x, y, vx, vy), frame px
     log_weights: Array  # [P, N] normalised
     ref_spin: Array  # [P, W, W] reference spin images
-    ref_geodesic: Array  # [P, R] mm, initial geodesic distances from the references
+    ref_geodesic: Array  # [P, R] mm, geodesic distances from the references (initial, or
+    # followed with ``adapt_geodesic``)
     box: Array  # [4] box of the last frame
     estimate: Array  # [P, 2] weighted-mean estimate of the last frame
     depth: Array  # [P] mm, the point's depth: the surface under its last visible estimate
     hidden: Array  # [P, N] bool, each particle's visibility flag (True: hidden)
     hidden_prob: Array  # [P] posterior probability that the point is hidden
+    anchor: Array  # [P, 2] the point's start position relative to the box (``box_offsets``)
 
 
 class PointInfo(NamedTuple):
@@ -251,6 +265,7 @@ def point_init(
         depth=bm.depth[rc[:, 0], rc[:, 1]],
         hidden=jnp.zeros((p, n), bool),
         hidden_prob=jnp.zeros((p,), jnp.float32),
+        anchor=box_offsets(jnp.asarray(box, jnp.float32), start),
     )
 
 
@@ -387,6 +402,44 @@ def depth_term(params: PointWeightParams, bm: BodyModel, rc, z_pred: Array) -> A
     z = bm.depth[rc[..., 0], rc[..., 1]]
     dz = (z - z_pred[:, None]) / _per_point(params.depth_sigma, p)
     return jnp.where(z_pred[:, None] > 0, -0.5 * dz * dz, 0.0)
+
+
+def box_offsets(box: Array, xy: Array) -> Array:
+    """``[..., 2]`` positions ``xy [..., 2]`` relative to ``box [4]``: from its centre, in box
+    heights (the height follows the person's depth, so an offset on the body keeps its value
+    as the person walks towards or away from the camera)."""
+    return (xy - (box[:2] + box[2:] / 2)) / jnp.maximum(box[3], 1.0)
+
+
+def anchor_term(params: PointWeightParams, box: Array, anchor: Array, xy: Array) -> Array:
+    """``[P, N]`` log-weight ``-dx^2 / (2 sx^2) - dy^2 / (2 sy^2)`` of the particles' offsets
+    in ``box [4]`` (``box_offsets``) from each point's start offset ``anchor [P, 2]``: a body
+    model's prior that a hand swings about the hip (down the box it stays within a forearm;
+    across, within the swing), so that a cloud does not settle on a knee or a foot."""
+    p = xy.shape[0]
+    d = box_offsets(box, xy) - anchor[:, None, :]
+    sx, sy = _per_point(params.anchor_sigma_x, p), _per_point(params.anchor_sigma_y, p)
+    return -0.5 * ((d[..., 0] / sx) ** 2 + (d[..., 1] / sy) ** 2)
+
+
+def geodesic_reference_update(
+    config: PointConfig,
+    params: PointWeightParams,
+    bm: BodyModel,
+    ref: Array,
+    xy: Array,
+    visible: Array,
+) -> Array:
+    """``[P, R]`` geodesic references ``ref`` moved a fraction ``geo_rate`` towards the
+    distances under the estimates ``xy [P, 2]`` of the points ``visible [P]`` whose estimate
+    lies on the body and is reached from every reference (kept elsewhere): a hand's distance
+    from the head along the surface changes as its bridges to the trunk come and go."""
+    p = xy.shape[0]
+    rc, inside = window_pixels(bm, xy, config.window)
+    g = bm.geodesic[:, rc[:, 0], rc[:, 1]].T  # [P, R]
+    ok = visible & inside & bm.body[rc[:, 0], rc[:, 1]] & jnp.all(jnp.isfinite(g), -1)
+    rate = _per_point(params.geo_rate, p)
+    return jnp.where(ok[:, None], ref + rate * (jnp.where(ok[:, None], g, ref) - ref), ref)
 
 
 def hidden_term(params: PointWeightParams, bm: BodyModel, rc, inside, z_pred: Array) -> Array:
@@ -544,7 +597,8 @@ def point_estimate(xy: Array, hidden: Array, lw: Array) -> tuple[Array, Array, A
 def point_step(
     config: PointConfig, params: PointParams, key: Array, state: PointState, frame: PointFrame
 ) -> tuple[PointState, PointInfo]:
-    """One frame: segment, predict, re-acquire, weigh, recover, estimate, resample."""
+    """One frame: segment, predict, re-acquire, weigh (with the anchor prior), recover,
+    estimate, follow the geodesic references, resample."""
     p = state.particles.shape[0]
     k_pos, k_vel, k_vis, k_acq, k_rec, k_res = jax.random.split(key, 6)
     box = jnp.asarray(frame.box, jnp.float32)
@@ -558,6 +612,8 @@ def point_step(
     if config.visibility == "report":
         llr = hidden_evidence(config, params.weights, bm, state.log_weights, xy, lw, z_pred)
         prob = hidden_update(params.motion, state.hidden_prob, llr)
+    if config.anchor_prior:
+        lw = lw + anchor_term(params.weights, box, state.anchor, xy)
     xy, vel, hidden, lw, recovered = point_recover(
         params.motion, k_rec, bm, prev_est, xy, vel, hidden, lw
     )
@@ -571,18 +627,24 @@ def point_step(
     if config.hidden_particles:
         # A hidden point keeps its predicted depth: the surface under it is what hides it.
         z_mean = jnp.where(is_hidden, z_pred, z_mean)
+    ref_geodesic = state.ref_geodesic
+    if config.adapt_geodesic:
+        ref_geodesic = geodesic_reference_update(
+            config, params.weights, bm, ref_geodesic, mean, ~is_hidden
+        )
     carried = jnp.concatenate([xy, vel, hidden[..., None].astype(jnp.float32)], -1)
     carried, lw, resampled = point_resample(config, k_res, lw, carried, recovered)
     new_state = PointState(
         carried[..., :4],
         lw,
         state.ref_spin,
-        state.ref_geodesic,
+        ref_geodesic,
         box,
         mean,
         jnp.where(z_mean > 0, z_mean, z_pred),
         carried[..., 4] > 0.5,
         share,
+        state.anchor,
     )
     info = PointInfo(
         mean=mean,
