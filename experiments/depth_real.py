@@ -222,11 +222,11 @@ def window_sample(mask: np.ndarray, bm) -> np.ndarray:
     return mask[np.clip(rows, 0, h - 1)][:, np.clip(cols, 0, w - 1)] & inside
 
 
-def frame_scene_foreground(points: PointConfig, box0: np.ndarray):
+def frame_scene_foreground(points: PointConfig, box0: np.ndarray, frame_hw=(480, 640)):
     """A jitted ``(colour, depth, box) -> [H, W] bool``: layer 2's foreground in the cascade
     without background frames (grid-occlusion layer 1, its window set from ``box0``)."""
     box = RGBDConfig(variant="grid-occlusion").with_window(
-        (float(box0[2]), float(box0[3])), (480, 640)
+        (float(box0[2]), float(box0[3])), frame_hw
     )
     config = CascadeConfig(box=box, points=points, foreground=True)
 

@@ -1,0 +1,133 @@
+"""The body's anchor at the target's depth (``PointConfig.joined_anchor = "depth"``) against a
+SciPy reference, under jit and vmap, and on a scene where someone passes in front."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from cpf_jax.points import PointConfig
+from cpf_jax.points import body as pb
+
+CFG = PointConfig(
+    min_component_fraction=0.05,
+    joined_max_dz_mm=160.0,
+    joined_anchor="depth",
+    anchor_max_dz_mm=300.0,
+)
+
+
+def _reference(d: np.ndarray, body: np.ndarray, target: float, cfg: PointConfig) -> np.ndarray:
+    """The groups of ``body`` (8 neighbours joined when ``|dz| < joined_max_dz_mm``) whose mean
+    depth is within ``anchor_max_dz_mm`` of ``target``; else the group of the body pixel
+    nearest the centre (ties: the first in row-major order)."""
+    h, w = d.shape
+    idx = np.arange(h * w).reshape(h, w)
+    rows, cols = [], []
+    for r in range(h):
+        for c in range(w):
+            for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+                r2, c2 = r + dr, c + dc
+                if not (0 <= r2 < h and 0 <= c2 < w):
+                    continue
+                if body[r, c] and body[r2, c2] and abs(d[r, c] - d[r2, c2]) < cfg.joined_max_dz_mm:
+                    rows.append(idx[r, c])
+                    cols.append(idx[r2, c2])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(h * w, h * w))
+    _, labels = connected_components(graph, directed=False)
+    labels = labels.reshape(h, w)
+    out = np.zeros_like(body)
+    for lab in np.unique(labels[body]):
+        g = body & (labels == lab)
+        if abs(d[g].mean() - target) <= cfg.anchor_max_dz_mm:
+            out |= g
+    if target > 0 and out.any():
+        return out
+    rr, cc = np.nonzero(body)
+    k = np.argmin((rr - (h - 1) / 2) ** 2 + (cc - (w - 1) / 2) ** 2)
+    return body & (labels == labels[rr[k], cc[k]])
+
+
+def _scene(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Depth ``[24, 32]`` mm of blocks at random depths over a wall, and its foreground."""
+    rng = np.random.default_rng(seed)
+    d = np.full((24, 32), 5000.0, np.float32)
+    for _ in range(6):
+        r, c = rng.integers(0, 20), rng.integers(0, 28)
+        d[r : r + rng.integers(3, 10), c : c + rng.integers(3, 10)] = rng.uniform(1500, 4000)
+    d += rng.normal(0, 20, d.shape).astype(np.float32)
+    return d, d < 4500
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_joined_at_depth_matches_scipy_under_jit_and_vmap(seed):
+    d, body = _scene(seed)
+    ones = jnp.ones(d.shape, jnp.float32)
+    # the target at the depth of a block, between blocks, and unknown (the centre's group)
+    inside = d[body]
+    targets = np.float32([inside[0], inside.mean(), 0.0])
+    run = jax.jit(lambda z, b, t: pb._joined_at_depth(CFG, z, b, ones, t))
+    for t in targets:
+        want = _reference(d, body, float(t), CFG)
+        np.testing.assert_array_equal(np.asarray(run(jnp.asarray(d), jnp.asarray(body), t)), want)
+    got = jax.vmap(lambda t: pb._joined_at_depth(CFG, jnp.asarray(d), jnp.asarray(body), ones, t))(
+        jnp.asarray(targets)
+    )
+    for k, t in enumerate(targets):
+        np.testing.assert_array_equal(np.asarray(got[k]), _reference(d, body, float(t), CFG))
+
+
+def test_the_person_behind_not_the_one_passing_in_front_at_the_centre():
+    # The tracked person at 3000 mm fills the window; someone at 2000 mm passes in front of
+    # its centre and splits him in two. The centre's group is the passer-by; at the target's
+    # depth both halves of the tracked person are the body, and no pixel of the passer-by.
+    d = np.full((20, 30), 6000.0, np.float32)
+    d[1:19, 4:26] = 3000
+    d[0:20, 12:18] = 2000
+    fg = d < 5000
+    him = fg & (d > 2500)
+    ones = jnp.ones(d.shape, jnp.float32)
+    centre = pb._joined_to_centre(CFG, jnp.asarray(d), jnp.asarray(fg), ones)
+    np.testing.assert_array_equal(np.asarray(centre), fg & (d < 2500))
+    got = pb._joined_at_depth(CFG, jnp.asarray(d), jnp.asarray(fg), ones, jnp.float32(3100.0))
+    np.testing.assert_array_equal(np.asarray(got), him)
+    # unknown depth (0) or no group near it: the centre's group
+    for t in (0.0, 4500.0):
+        got = pb._joined_at_depth(CFG, jnp.asarray(d), jnp.asarray(fg), ones, jnp.float32(t))
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(centre))
+
+
+def test_segment_uses_the_depth_anchor_only_when_given():
+    d = np.full((20, 30), 6000.0, np.float32)
+    d[1:19, 4:26] = 3000
+    d[0:20, 12:18] = 2000
+    fg = jnp.asarray(d < 5000)
+    roi = jnp.ones(d.shape, bool)
+    ones = jnp.ones(d.shape, jnp.float32)
+    cfg = dataclasses.replace(CFG, background_margin_mm=None)
+    without = pb._segment(cfg, jnp.asarray(d), roi, fg, ones)
+    with_z = pb._segment(cfg, jnp.asarray(d), roi, fg, ones, jnp.float32(3000.0))
+    assert np.asarray(without)[10, 15] and not np.asarray(without)[10, 5]
+    assert np.asarray(with_z)[10, 5] and not np.asarray(with_z)[10, 15]
+    centre = pb._segment(
+        dataclasses.replace(cfg, joined_anchor="centre"),
+        jnp.asarray(d),
+        roi,
+        fg,
+        ones,
+        jnp.float32(3000.0),
+    )
+    np.testing.assert_array_equal(np.asarray(centre), np.asarray(without))
+
+
+def test_anchor_settings_are_checked():
+    with pytest.raises(ValueError, match="joined_anchor"):
+        PointConfig(joined_anchor="head")
+    with pytest.raises(ValueError, match="anchor_max_dz_mm"):
+        PointConfig(anchor_max_dz_mm=0.0)
