@@ -15,10 +15,14 @@ own scene as layer 1 reads it when it starts on the box, ``PointConfig.with_fore
 Scored on the **contact frames**: those in which the walker shows at least
 ``MIN_PIXELS`` pixels and another person's box overlaps his. ``recall`` is the share of
 the walker's visible pixels (the generator's mask) in the window that are on the body,
-``leak`` the share of the body that is not the walker. Variants (``VARIANTS``): no join
+``leak`` the share of the body that is not the walker. Variants (``variants``): no join
 (the sizeable components), the components joined through 160 mm steps to the one at the
-box's centre (``joined_anchor="centre"``), and those whose mean depth lies within
-``anchor_max_dz_mm`` of layer 1's target depth (``joined_anchor="depth"``).
+box's centre (``joined_anchor="centre"``), those whose mean depth lies within
+``anchor_max_dz_mm`` of layer 1's target depth (``joined_anchor="depth"``), and the same
+with "sizeable" measured against the largest component at that depth
+(``anchor_sizeable``). The foreground is the one the cascade's layer 2 gets from the running
+layer 1 (``cascade.layer2_from_layer1``); the ``per-frame scene`` rows use instead
+``depth_real.py``'s ``layer+scene`` foreground (layer 1 restarted on each frame's box).
 
 Writes ``experiments/results/depth_anchor_train.json`` and ``.md``::
 
@@ -36,13 +40,10 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from depth_real import frame_scene_foreground, window_sample
+from depth_real import frame_scene_foreground, layer1_inputs, window_sample
 
-from cpf_jax.cascade import CascadeConfig, layer2_from_layer1
 from cpf_jax.points import PointConfig, body_model
-from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
 from cpf_jax.synthetic_multi import make_people_sequence
-from cpf_jax.types import Frame
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
@@ -64,43 +65,10 @@ def variants(base: PointConfig) -> dict[str, PointConfig]:
         out[f"joined, depth {tol:.0f}"] = dataclasses.replace(
             joined, joined_anchor="depth", anchor_max_dz_mm=tol
         )
+        out[f"joined, depth {tol:.0f}, sizes at depth"] = dataclasses.replace(
+            out[f"joined, depth {tol:.0f}"], anchor_sizeable=True
+        )
     return out
-
-
-def layer1_inputs(points: PointConfig, colour, depth, boxes) -> tuple[np.ndarray, np.ndarray]:
-    """What the cascade's layer 2 takes from layer 1 in every frame, for the boxes
-    ``boxes [T, 4]``: the foreground ``[T, H, W] bool`` and the target's depth ``[T]`` mm
-    (``cascade.layer2_from_layer1``), layer 1 (grid-occlusion, no background frames) run
-    from ``boxes[0]`` on frame 0."""
-    hw = depth.shape[1:]
-    box = RGBDConfig(variant="grid-occlusion").with_window((boxes[0][2], boxes[0][3]), hw)
-    config = CascadeConfig(box=box, points=points, foreground=True)
-    filt = build_rgbd_filter(box)
-    params = default_rgbd_params(box)
-
-    def seen(s, f, b):
-        inp = layer2_from_layer1(config, None, s, f, b)
-        return inp.foreground, inp.target_depth
-
-    def run(key, frames, boxes):
-        k0, k1 = jax.random.split(key)
-        first = jax.tree_util.tree_map(lambda x: x[0], frames)
-        rest = jax.tree_util.tree_map(lambda x: x[1:], frames)
-        s = filt.init(params, k0, first, boxes[0])
-
-        def body(s, xs):
-            k, f, b = xs
-            s, _ = filt.step(params, k, s, f)
-            return s, seen(s, f, b)
-
-        keys = jax.random.split(k1, depth.shape[0] - 1)
-        _, (fg, z) = jax.lax.scan(body, s, (keys, rest, boxes[1:]))
-        fg0, z0 = seen(s, first, boxes[0])
-        return jnp.concatenate([fg0[None], fg]), jnp.concatenate([z0[None], z])
-
-    frames = Frame(jnp.asarray(colour), jnp.asarray(depth))
-    fg, z = jax.jit(run)(jax.random.PRNGKey(0), frames, jnp.asarray(boxes, jnp.float32))
-    return np.asarray(fg), np.asarray(z)
 
 
 def contact_frames(seq) -> list[int]:

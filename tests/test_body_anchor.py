@@ -23,10 +23,8 @@ CFG = PointConfig(
 )
 
 
-def _reference(d: np.ndarray, body: np.ndarray, target: float, cfg: PointConfig) -> np.ndarray:
-    """The groups of ``body`` (8 neighbours joined when ``|dz| < joined_max_dz_mm``) whose mean
-    depth is within ``anchor_max_dz_mm`` of ``target``; else the group of the body pixel
-    nearest the centre (ties: the first in row-major order)."""
+def _labels(d: np.ndarray, body: np.ndarray, max_dz: float) -> np.ndarray:
+    """SciPy's components of ``body``, 8 neighbours joined when ``|dz| < max_dz``."""
     h, w = d.shape
     idx = np.arange(h * w).reshape(h, w)
     rows, cols = [], []
@@ -36,12 +34,19 @@ def _reference(d: np.ndarray, body: np.ndarray, target: float, cfg: PointConfig)
                 r2, c2 = r + dr, c + dc
                 if not (0 <= r2 < h and 0 <= c2 < w):
                     continue
-                if body[r, c] and body[r2, c2] and abs(d[r, c] - d[r2, c2]) < cfg.joined_max_dz_mm:
+                if body[r, c] and body[r2, c2] and abs(d[r, c] - d[r2, c2]) < max_dz:
                     rows.append(idx[r, c])
                     cols.append(idx[r2, c2])
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(h * w, h * w))
-    _, labels = connected_components(graph, directed=False)
-    labels = labels.reshape(h, w)
+    return connected_components(graph, directed=False)[1].reshape(h, w)
+
+
+def _reference(d: np.ndarray, body: np.ndarray, target: float, cfg: PointConfig) -> np.ndarray:
+    """The groups of ``body`` (8 neighbours joined when ``|dz| < joined_max_dz_mm``) whose mean
+    depth is within ``anchor_max_dz_mm`` of ``target``; else the group of the body pixel
+    nearest the centre (ties: the first in row-major order)."""
+    h, w = d.shape
+    labels = _labels(d, body, cfg.joined_max_dz_mm)
     out = np.zeros_like(body)
     for lab in np.unique(labels[body]):
         g = body & (labels == lab)
@@ -131,3 +136,50 @@ def test_anchor_settings_are_checked():
         PointConfig(joined_anchor="head")
     with pytest.raises(ValueError, match="anchor_max_dz_mm"):
         PointConfig(anchor_max_dz_mm=0.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_largest_at_depth_matches_scipy_under_jit_and_vmap(seed):
+    d, valid = _scene(seed)
+    labels = np.asarray(
+        pb.gk.connected_components(pb.gk.pixel_graph(jnp.asarray(d), jnp.asarray(valid), 25.0))
+    )
+    size = np.asarray(pb._component_sizes(jnp.asarray(labels), jnp.asarray(valid)))
+    ref = _labels(d, valid, 25.0)
+    sizes = {lab: (ref == lab)[valid].sum() for lab in np.unique(ref[valid])}
+    means = {lab: d[valid & (ref == lab)].mean() for lab in sizes}
+    targets = np.float32([d[valid][0], 2500.0, 0.0])
+
+    def want(t):
+        at = [sizes[k] for k in sizes if abs(means[k] - t) <= CFG.anchor_max_dz_mm]
+        return max(at) if at else max(sizes.values())
+
+    args = (jnp.asarray(d), jnp.asarray(labels), jnp.asarray(valid), jnp.asarray(size))
+    run = jax.jit(lambda t: pb._largest_at_depth(CFG, *args, t))
+    for t in targets:
+        assert float(run(t)) == want(float(t))
+    both = jax.vmap(lambda t: pb._largest_at_depth(CFG, *args, t))(jnp.asarray(targets))
+    np.testing.assert_array_equal(np.asarray(both), [want(float(t)) for t in targets])
+
+
+def test_a_mostly_hidden_target_keeps_his_small_pieces_with_sizes_at_depth():
+    # Someone at 2000 mm fills the window; of the target at 3000 mm only a strip at the
+    # side shows, under 5 % of the one in front: "sizeable" against the largest component
+    # drops the strip, against the largest at the target's depth keeps it.
+    d = np.full((40, 40), 6000.0, np.float32)
+    d[:, 2:40] = 2000
+    d[10:30, 0:2] = 3000
+    fg = jnp.asarray(d < 5000)
+    roi = jnp.ones(d.shape, bool)
+    ones = jnp.ones(d.shape, jnp.float32)
+    cfg = dataclasses.replace(CFG, background_margin_mm=None)
+    strip = (d > 2500) & (d < 5000)
+    z = jnp.float32(3000.0)
+    plain = np.asarray(pb._segment(cfg, jnp.asarray(d), roi, fg, ones, z))
+    sized = np.asarray(
+        pb._segment(
+            dataclasses.replace(cfg, anchor_sizeable=True), jnp.asarray(d), roi, fg, ones, z
+        )
+    )
+    assert not (plain & strip).any()
+    np.testing.assert_array_equal(sized, strip)

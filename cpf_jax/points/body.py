@@ -141,12 +141,32 @@ def _segment(
     if config.min_component_fraction is None:
         return gk.largest_component(labels, eligible)
     size = _component_sizes(labels, eligible)
-    body = eligible & (size >= config.min_component_fraction * jnp.max(size))
+    anchored = (
+        config.joined_max_dz_mm is not None
+        and config.joined_anchor == "depth"
+        and target_depth is not None
+    )
+    big = jnp.max(size)
+    if anchored and config.anchor_sizeable:
+        big = _largest_at_depth(config, d, labels, eligible, size, target_depth)
+    body = eligible & (size >= config.min_component_fraction * big)
     if config.joined_max_dz_mm is None:
         return body
-    if config.joined_anchor == "depth" and target_depth is not None:
+    if anchored:
         return _joined_at_depth(config, d, body, tscale, target_depth)
     return _joined_to_centre(config, d, body, tscale)
+
+
+def _largest_at_depth(
+    config: PointConfig, d: Array, labels: Array, eligible: Array, size: Array, target_depth
+) -> Array:
+    """``[]``: the pixel count of the largest component (``labels``, per-pixel ``size``)
+    whose mean depth lies within ``anchor_max_dz_mm`` of ``target_depth`` (the largest
+    overall when none does): the yardstick of "sizeable" for a target mostly hidden by
+    someone nearer, whose visible pieces are small beside the one in front."""
+    z = gk.component_mean(labels, d, eligible)
+    at = eligible & (jnp.abs(z - target_depth) <= config.anchor_max_dz_mm)
+    return jnp.where(jnp.any(at), jnp.max(jnp.where(at, size, 0.0)), jnp.max(size))
 
 
 def _joined_to_centre(config: PointConfig, d: Array, body: Array, tscale: Array) -> Array:

@@ -83,6 +83,10 @@ class PointConfig:
     # the centre's group when no depth is given or no group is there.
     joined_anchor: str = "centre"
     anchor_max_dz_mm: float = 300.0
+    # With ``joined_anchor="depth"``: a component is sizeable against the largest one at the
+    # target's depth rather than the largest in the window (a target mostly hidden by
+    # someone nearer shows only small pieces).
+    anchor_sizeable: bool = False
     patch_radius: int = 32  # window pixels visited per spin image (see kernels.spin)
     spin_batch: int = 32  # distinct query pixels per spin-image loop step
     follow_box: bool = True
