@@ -183,3 +183,26 @@ def test_a_mostly_hidden_target_keeps_his_small_pieces_with_sizes_at_depth():
     )
     assert not (plain & strip).any()
     np.testing.assert_array_equal(sized, strip)
+
+
+def test_the_cascade_gives_layer2_layer1s_target_depth():
+    """Layer 2's frame carries the depth layer 1 reads from its templates: the walker's."""
+    from cpf_jax.cascade import CascadeConfig, layer1_target_depth, layer2_from_layer1
+    from cpf_jax.colour import ColourConfig
+    from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
+    from cpf_jax.synthetic import make_sequence
+    from cpf_jax.types import Frame
+
+    seq = make_sequence("walk_towards", seed=0, n_frames=2, fps=30.0)
+    box = RGBDConfig(n_particles=50).with_window(
+        tuple(float(v) for v in seq.boxes[0, 2:]), seq.colour.shape[1:3]
+    )
+    config = CascadeConfig(box=box, points=PointConfig(), foreground=True)
+    frame = Frame(jnp.asarray(seq.colour[0]), jnp.asarray(seq.depth[0]))
+    b = jnp.asarray(seq.boxes[0])
+    s1 = build_rgbd_filter(box).init(default_rgbd_params(box), jax.random.PRNGKey(0), frame, b)
+    inp = jax.jit(lambda s, f: layer2_from_layer1(config, None, s, f, b))(s1, frame)
+    walker = np.median(seq.depth[0][seq.mask[0]])
+    assert abs(float(inp.target_depth) - walker) < 150
+    assert inp.foreground is not None
+    assert layer1_target_depth(ColourConfig(), None) is None
