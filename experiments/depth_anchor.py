@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 from pathlib import Path
@@ -90,16 +91,19 @@ def contact_frames(seq) -> list[int]:
     return out
 
 
+@functools.cache
+def _jitted_body_model(config: PointConfig):
+    """``body_model`` under ``config``, jitted once for every sequence."""
+    return jax.jit(lambda d, b, f, z: body_model(config, d, b, f, z))
+
+
 def score_sequence(seq) -> dict[str, list[dict]]:
     """Per variant, per contact frame: recall and leak of the walker's body."""
     box0 = np.asarray(seq.boxes[0], np.float64)
     base = PointConfig(window=WINDOW, intrinsics=seq.intrinsics).with_foreground()
     scene_fg = frame_scene_foreground(base, box0, seq.depth.shape[1:])
     run_fg, z = layer1_inputs(base, seq.colour, seq.depth, seq.boxes)
-    models = {
-        name: jax.jit(lambda d, b, f, zt, c=c: body_model(c, d, b, f, zt))
-        for name, c in variants(base).items()
-    }
+    models = {name: _jitted_body_model(c) for name, c in variants(base).items()}
     settings = {f"{PER_FRAME} {n}": n for n in PER_FRAME_VARIANTS}
     settings.update({n: n for n in models})
     out: dict[str, list[dict]] = {name: [] for name in settings}
