@@ -29,7 +29,8 @@ on the hand-checked box in these settings:
   nearest the box's centre through depth steps of at most 160 mm
   (``PointConfig.joined_max_dz_mm``);
 * ``layer+scene, anchored``: the joined groups whose mean depth lies within ``ANCHOR_MM``
-  of the target's depth instead (``PointConfig.joined_anchor = "depth"``), the depth layer
+  of the target's depth instead (``PointConfig.joined_anchor = "depth"``, with
+  ``anchor_sizeable``: sizeable against the largest component at that depth), the depth layer
   1 (grid-occlusion, no background frames) reads from its templates while it runs over
   frames 51-90 from the hand-checked box of frame 51 (``cascade.layer1_target_depth``);
 * ``layer+run``, ``layer+run, joined``, ``layer+run, anchored``: the last three inside the
@@ -386,7 +387,9 @@ def main() -> None:
 
     base = PointConfig(window=WINDOW, intrinsics=intr, up=tuple(float(x) for x in up))
     joined = dataclasses.replace(base.with_foreground(), joined_max_dz_mm=160.0)
-    anchored = dataclasses.replace(joined, joined_anchor="depth", anchor_max_dz_mm=ANCHOR_MM)
+    anchored = dataclasses.replace(
+        joined, joined_anchor="depth", anchor_max_dz_mm=ANCHOR_MM, anchor_sizeable=True
+    )
     settings = {
         "thesis": dataclasses.replace(
             base,
