@@ -101,8 +101,6 @@ def _cascade(args, source, inputs: Inputs, layer1_config, box_params, background
     )
     if foreground:
         points_config = points_config.with_foreground()
-    if frameless:  # layer 1's target depth anchors the body (docs/decisions.md)
-        points_config = points_config.with_depth_anchor()
     config = CascadeConfig(box=layer1_config, points=points_config, foreground=foreground)
     if args.points == "auto":
         points, names = _auto_points(config, inputs, background)

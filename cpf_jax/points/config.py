@@ -155,19 +155,6 @@ class PointConfig:
             geodesic_max_dist_mm=160.0,
         )
 
-    def with_depth_anchor(self) -> PointConfig:
-        """These settings with the body anchored at the target's depth (``PointFrame.
-        target_depth``, layer 1's in the cascade): the sizeable components, sizeable against
-        the largest one at that depth, joined through depth steps of at most 160 mm, whose
-        groups lie within 300 mm of it; not the people beside, in front or behind."""
-        return dataclasses.replace(
-            self,
-            joined_max_dz_mm=160.0,
-            joined_anchor="depth",
-            anchor_max_dz_mm=300.0,
-            anchor_sizeable=True,
-        )
-
     @property
     def hidden_particles(self) -> bool:
         return self.visibility == "particles"
