@@ -23,7 +23,9 @@ keeps the last box it had, so that the points stay where the body was last seen.
 model: layer 1's own (which sees its background updates) when layer 1 is the RGB-D
 filter, with the frame's own scene behind its unseen pixels as layer 1 sees it
 (``rgbd.filter.unseen_scene``, ``RGBDConfig.side_scene``; without background frames every
-pixel is unseen), else ``context.background``.
+pixel is unseen), else ``context.background``. Layer 2 also gets the RGB-D filter's target
+depth (``layer1_target_depth``), which anchors the body with ``PointConfig.joined_anchor =
+"depth"``.
 """
 
 from __future__ import annotations

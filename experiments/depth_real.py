@@ -32,7 +32,8 @@ on the hand-checked box in these settings:
   of the target's depth instead (``PointConfig.joined_anchor = "depth"``, with
   ``anchor_sizeable``: sizeable against the largest component at that depth), the depth layer
   1 (grid-occlusion, no background frames) reads from its templates while it runs over
-  frames 51-90 from the hand-checked box of frame 51 (``cascade.layer1_target_depth``);
+  frames 51-90 from the hand-checked box of frame 51 (``cascade.layer1_target_depth``;
+  chosen on ``depth_anchor.py``'s synthetic training scenes, not a default);
 * ``layer+run``, ``layer+run, joined``, ``layer+run, anchored``: the last three inside the
   foreground the cascade's layer 2 gets from that running layer 1 (its scene, behind the
   target's depth, ``cascade.layer2_from_layer1``), rather than from layer 1 restarted on
