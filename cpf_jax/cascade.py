@@ -23,7 +23,9 @@ keeps the last box it had, so that the points stay where the body was last seen.
 model: layer 1's own (which sees its background updates) when layer 1 is the RGB-D
 filter, with the frame's own scene behind its unseen pixels as layer 1 sees it
 (``rgbd.filter.unseen_scene``, ``RGBDConfig.side_scene``; without background frames every
-pixel is unseen), else ``context.background``.
+pixel is unseen), else ``context.background``. Layer 2 also gets the RGB-D filter's target
+depth (``layer1_target_depth``), which anchors the body with ``PointConfig.joined_anchor =
+"depth"``.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ from cpf_jax.points import (
     default_point_params,
 )
 from cpf_jax.rgbd import RGBDConfig, RGBDParams, build_rgbd_filter, default_rgbd_params
+from cpf_jax.rgbd import filter as rgbd_filter
 from cpf_jax.rgbd.filter import unseen_scene
 from cpf_jax.types import Frame
 
@@ -69,6 +72,8 @@ __all__ = [
     "layer2_frame",
     "body_surface",
     "scene_for_layer2",
+    "layer1_target_depth",
+    "layer2_from_layer1",
     "find_body_points",
     "body_points_confidence",
 ]
@@ -176,10 +181,25 @@ def check_points(points_xy, frame_hw: tuple[int, int]) -> np.ndarray:
     return p.astype(np.float32)
 
 
+def layer1_target_depth(box_config: ColourConfig | RGBDConfig, s1) -> Array | None:
+    """``[]`` mm: the target's depth in layer 1's state ``s1`` as the RGB-D filter reads it
+    (``rgbd.filter.target_depth``, the median of its known depth templates; 0: none known;
+    they learn only from cells voted visible, so someone passing in front does not move
+    them); None for the colour layer."""
+    if not isinstance(box_config, RGBDConfig):
+        return None
+    return rgbd_filter.target_depth(s1.depth.depth)
+
+
 def layer2_frame(
-    config: CascadeConfig, frame: Frame, box: Array, background: Background | None
+    config: CascadeConfig,
+    frame: Frame,
+    box: Array,
+    background: Background | None,
+    target_depth: Array | None = None,
 ) -> PointFrame:
-    """Layer 2's frame for ``box``: the depth, and the foreground when configured."""
+    """Layer 2's frame for ``box``: the depth, the foreground when configured, and the
+    target's depth (``layer1_target_depth``) that anchors the body."""
     fg = None
     if config.foreground and background is not None:
         fg = foreground_mask(
@@ -189,7 +209,17 @@ def layer2_frame(
             depth_abs=config.foreground_depth_mm,
             depth_rel=config.foreground_depth_rel,
         )
-    return PointFrame(frame.depth, box, fg)
+    return PointFrame(frame.depth, box, fg, target_depth)
+
+
+def layer2_from_layer1(
+    config: CascadeConfig, own: Background | None, s1, frame: Frame, box: Array
+) -> PointFrame:
+    """Layer 2's frame for ``box`` given layer 1's state ``s1`` on ``frame``: the foreground
+    against layer 1's background (``own`` when layer 1 keeps none; module docstring) and the
+    target's depth (``layer1_target_depth``)."""
+    bg2 = _layer2_background(config, own, s1, frame)
+    return layer2_frame(config, frame, box, bg2, layer1_target_depth(config.box, s1))
 
 
 def _background(context: Context | None) -> Background | None:
@@ -287,10 +317,8 @@ def build_cascade(config: CascadeConfig) -> Filter:
         points = None if context is None else context.points
         s1 = layer1.init(params.box, k1, frame, box, Context(background=background))
         own = None if config.layer1_background else background
-        bg2 = _layer2_background(config, own, s1, frame)
-        s2 = layer2.init(
-            params.points, k2, layer2_frame(config, frame, box, bg2), box, Context(points=points)
-        )
+        inp = layer2_from_layer1(config, own, s1, frame, box)
+        s2 = layer2.init(params.points, k2, inp, box, Context(points=points))
         return CascadeState(s1, s2, own)
 
     def step(params, key, state, frame):
@@ -298,8 +326,8 @@ def build_cascade(config: CascadeConfig) -> Filter:
         s1, i1 = layer1.step(params.box, k1, state.box, frame)
         new_box = i1.estimate if config.box_source == "estimate" else i1.box
         box = jnp.where(i1.lost, state.points.box, new_box)
-        bg2 = _layer2_background(config, state.background, s1, frame)
-        s2, i2 = layer2.step(params.points, k2, state.points, layer2_frame(config, frame, box, bg2))
+        inp = layer2_from_layer1(config, state.background, s1, frame, box)
+        s2, i2 = layer2.step(params.points, k2, state.points, inp)
         common = (i1.box, i1.lost, i1.ess, i1.log_evidence, i1.estimate, i1.windowed)
         info = CascadeInfo(*common, i1, i2, box)
         return CascadeState(s1, s2, state.background), info

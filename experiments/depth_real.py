@@ -27,7 +27,17 @@ on the hand-checked box in these settings:
   reads it when it starts on the box (``cascade.scene_for_layer2``).
 * ``layer+scene, joined``: ``layer+scene`` keeping only the components joined to the one
   nearest the box's centre through depth steps of at most 160 mm
-  (``PointConfig.joined_max_dz_mm``; not a default: measured here only).
+  (``PointConfig.joined_max_dz_mm``);
+* ``layer+scene, anchored``: the joined groups whose mean depth lies within ``ANCHOR_MM``
+  of the target's depth instead (``PointConfig.joined_anchor = "depth"``, with
+  ``anchor_sizeable``: sizeable against the largest component at that depth), the depth layer
+  1 (grid-occlusion, no background frames) reads from its templates while it runs over
+  frames 51-90 from the hand-checked box of frame 51 (``cascade.layer1_target_depth``;
+  chosen on ``depth_anchor.py``'s synthetic training scenes, not a default);
+* ``layer+run``, ``layer+run, joined``, ``layer+run, anchored``: the last three inside the
+  foreground the cascade's layer 2 gets from that running layer 1 (its scene, behind the
+  target's depth, ``cascade.layer2_from_layer1``), rather than from layer 1 restarted on
+  each frame's box.
 
 Scored against the **person's foreground**: the foreground pixels inside the hand-checked
 box that belong to the target, i.e. the depth-connected components (neighbours joined when
@@ -77,7 +87,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from cpf_jax.cascade import CascadeConfig, layer2_frame, scene_for_layer2
+from cpf_jax.cascade import CascadeConfig, layer2_frame, layer2_from_layer1, scene_for_layer2
 from cpf_jax.filter import Context, track
 from cpf_jax.io.results import read_results
 from cpf_jax.kernels import depth as dk
@@ -90,7 +100,7 @@ from cpf_jax.points import (
     default_point_params,
 )
 from cpf_jax.registration import load_calibration, register_depth
-from cpf_jax.rgbd import RGBDConfig
+from cpf_jax.rgbd import RGBDConfig, build_rgbd_filter, default_rgbd_params
 from cpf_jax.types import Frame
 
 HERE = Path(__file__).resolve().parent
@@ -103,6 +113,9 @@ EMPTY = list(range(1, 27)) + list(range(103, 109))
 WINDOW = (256, 192)
 SHOW = (53, 60, 68, 76, 84, 88)
 PARTS = ("head", "left_hand", "right_hand")
+#: ``anchor_max_dz_mm`` of the anchored settings, chosen on synthetic training scenes
+#: (``depth_anchor.py``).
+ANCHOR_MM = 300.0
 LAYER2_START = 56  # the first frame in which his head and both hands show
 CLI = [
     str(ROOT),
@@ -222,11 +235,11 @@ def window_sample(mask: np.ndarray, bm) -> np.ndarray:
     return mask[np.clip(rows, 0, h - 1)][:, np.clip(cols, 0, w - 1)] & inside
 
 
-def frame_scene_foreground(points: PointConfig, box0: np.ndarray):
+def frame_scene_foreground(points: PointConfig, box0: np.ndarray, frame_hw=(480, 640)):
     """A jitted ``(colour, depth, box) -> [H, W] bool``: layer 2's foreground in the cascade
     without background frames (grid-occlusion layer 1, its window set from ``box0``)."""
     box = RGBDConfig(variant="grid-occlusion").with_window(
-        (float(box0[2]), float(box0[3])), (480, 640)
+        (float(box0[2]), float(box0[3])), frame_hw
     )
     config = CascadeConfig(box=box, points=points, foreground=True)
 
@@ -235,6 +248,42 @@ def frame_scene_foreground(points: PointConfig, box0: np.ndarray):
         return layer2_frame(config, frame, b, scene_for_layer2(config, frame, b, None)).foreground
 
     return jax.jit(fg)
+
+
+def layer1_inputs(points: PointConfig, colour, depth, boxes) -> tuple[np.ndarray, np.ndarray]:
+    """What the cascade's layer 2 takes from layer 1 in every frame, for the boxes
+    ``boxes [T, 4]``: the foreground ``[T, H, W] bool`` and the target's depth ``[T]`` mm
+    (``cascade.layer2_from_layer1``), layer 1 (grid-occlusion, no background frames) run
+    from ``boxes[0]`` on frame 0."""
+    hw = depth.shape[1:]
+    box = RGBDConfig(variant="grid-occlusion").with_window((boxes[0][2], boxes[0][3]), hw)
+    config = CascadeConfig(box=box, points=points, foreground=True)
+    filt = build_rgbd_filter(box)
+    params = default_rgbd_params(box)
+
+    def seen(s, f, b):
+        inp = layer2_from_layer1(config, None, s, f, b)
+        return inp.foreground, inp.target_depth
+
+    def run(key, frames, boxes):
+        k0, k1 = jax.random.split(key)
+        first = jax.tree_util.tree_map(lambda x: x[0], frames)
+        rest = jax.tree_util.tree_map(lambda x: x[1:], frames)
+        s = filt.init(params, k0, first, boxes[0])
+
+        def body(s, xs):
+            k, f, b = xs
+            s, _ = filt.step(params, k, s, f)
+            return s, seen(s, f, b)
+
+        keys = jax.random.split(k1, depth.shape[0] - 1)
+        _, (fg, z) = jax.lax.scan(body, s, (keys, rest, boxes[1:]))
+        fg0, z0 = seen(s, first, boxes[0])
+        return jnp.concatenate([fg0[None], fg]), jnp.concatenate([z0[None], z])
+
+    frames = Frame(jnp.asarray(colour), jnp.asarray(depth))
+    fg, z = jax.jit(run)(jax.random.PRNGKey(0), frames, jnp.asarray(boxes, jnp.float32))
+    return np.asarray(fg), np.asarray(z)
 
 
 def score_points(tracks, hidden, boxes, gt, annot, names, parts, frames) -> dict:
@@ -338,6 +387,10 @@ def main() -> None:
     person = {i: person_mask(fg[i], frames[i][0], gt[i - 1], seeds[i]) for i in FRAMES}
 
     base = PointConfig(window=WINDOW, intrinsics=intr, up=tuple(float(x) for x in up))
+    joined = dataclasses.replace(base.with_foreground(), joined_max_dz_mm=160.0)
+    anchored = dataclasses.replace(
+        joined, joined_anchor="depth", anchor_max_dz_mm=ANCHOR_MM, anchor_sizeable=True
+    )
     settings = {
         "thesis": dataclasses.replace(
             base,
@@ -349,10 +402,22 @@ def main() -> None:
         "layer": base,
         "layer+fg": base.with_foreground(),
         "layer+scene": base.with_foreground(),
-        "layer+scene, joined": dataclasses.replace(base.with_foreground(), joined_max_dz_mm=160.0),
+        "layer+scene, joined": joined,
+        "layer+scene, anchored": anchored,
+        "layer+run": base.with_foreground(),
+        "layer+run, joined": joined,
+        "layer+run, anchored": anchored,
     }
-    models = {k: jax.jit(lambda d, b, f, c=c: body_model(c, d, b, f)) for k, c in settings.items()}
+    models = {
+        k: jax.jit(lambda d, b, f, z, c=c: body_model(c, d, b, f, z)) for k, c in settings.items()
+    }
     scene_fg = frame_scene_foreground(base.with_foreground(), gt[FRAMES[0] - 1])
+    run_fg, run_z = layer1_inputs(
+        base.with_foreground(),
+        np.stack([frames[i][1] for i in FRAMES]),
+        np.stack([frames[i][0] for i in FRAMES]),
+        np.stack([gt[i - 1] for i in FRAMES]),
+    )
     stats: dict = {k: [] for k in settings}
     keep: dict = {}
     for i in FRAMES:
@@ -364,7 +429,9 @@ def main() -> None:
                 mask = jnp.asarray(fg[i])
             elif name.startswith("layer+scene"):
                 mask = scene_fg(jnp.asarray(frames[i][1]), depth, box)
-            bm = f(depth, box, mask)
+            elif name.startswith("layer+run"):
+                mask = jnp.asarray(run_fg[i - FRAMES[0]])
+            bm = f(depth, box, mask, jnp.float32(run_z[i - FRAMES[0]]))
             body = np.asarray(bm.body)
             own = window_sample(person[i], bm)
             roi_fg = window_sample(fg[i], bm) & (np.asarray(bm.depth) > 0)

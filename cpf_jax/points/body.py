@@ -120,11 +120,19 @@ def _in_front(config: PointConfig, d: Array, roi: Array, labels: Array, valid: A
     return jnp.where(trust, front, valid)
 
 
-def _segment(config: PointConfig, d: Array, roi: Array, valid: Array, tscale: Array) -> Array:
+def _segment(
+    config: PointConfig,
+    d: Array,
+    roi: Array,
+    valid: Array,
+    tscale: Array,
+    target_depth: Array | None = None,
+) -> Array:
     """The body (thesis 4.1.2): the largest component of the ``|dz| < seg_max_dz_mm``
     pixel graph among the eligible pixels, or with ``min_component_fraction`` the union of
     the sizeable components (with a foreground mask the person is every sizeable one:
-    side-on, the near arm and leg are apart from the trunk in depth)."""
+    side-on, the near arm and leg are apart from the trunk in depth), with
+    ``joined_max_dz_mm`` only those joined to the anchor (``joined_anchor``)."""
     edges = gk.pixel_graph(d, valid, config.seg_max_dz_mm * tscale)
     labels = gk.connected_components(edges)
     eligible = valid
@@ -133,21 +141,68 @@ def _segment(config: PointConfig, d: Array, roi: Array, valid: Array, tscale: Ar
     if config.min_component_fraction is None:
         return gk.largest_component(labels, eligible)
     size = _component_sizes(labels, eligible)
-    body = eligible & (size >= config.min_component_fraction * jnp.max(size))
+    anchored = (
+        config.joined_max_dz_mm is not None
+        and config.joined_anchor == "depth"
+        and target_depth is not None
+    )
+    big = jnp.max(size)
+    if anchored and config.anchor_sizeable:
+        big = _largest_at_depth(config, d, labels, eligible, size, target_depth)
+    body = eligible & (size >= config.min_component_fraction * big)
     if config.joined_max_dz_mm is None:
         return body
+    if anchored:
+        return _joined_at_depth(config, d, body, tscale, target_depth)
     return _joined_to_centre(config, d, body, tscale)
+
+
+def _largest_at_depth(
+    config: PointConfig, d: Array, labels: Array, eligible: Array, size: Array, target_depth
+) -> Array:
+    """``[]``: the pixel count of the largest component (``labels``, per-pixel ``size``)
+    whose mean depth lies within ``anchor_max_dz_mm`` of ``target_depth`` (the largest
+    overall when none does): the yardstick of "sizeable" for a target mostly hidden by
+    someone nearer, whose visible pieces are small beside the one in front."""
+    z = gk.component_mean(labels, d, eligible)
+    at = eligible & (jnp.abs(z - target_depth) <= config.anchor_max_dz_mm)
+    return jnp.where(jnp.any(at), jnp.max(jnp.where(at, size, 0.0)), jnp.max(size))
 
 
 def _joined_to_centre(config: PointConfig, d: Array, body: Array, tscale: Array) -> Array:
     """The pixels of ``body`` joined to its pixel nearest the window's centre (the box's)
     through edges of at most ``joined_max_dz_mm``: the tracked person's components without
     the people beside or in front, whose depth steps away from him are larger."""
-    labels = gk.connected_components(gk.pixel_graph(d, body, config.joined_max_dz_mm * tscale))
+    return _group_at_centre(body, _joined_labels(config, d, body, tscale))
+
+
+def _joined_labels(config: PointConfig, d: Array, body: Array, tscale: Array) -> Array:
+    """``[Hw, Ww] int32`` components of ``body`` joined through depth steps of at most
+    ``joined_max_dz_mm``."""
+    return gk.connected_components(gk.pixel_graph(d, body, config.joined_max_dz_mm * tscale))
+
+
+def _group_at_centre(body: Array, labels: Array) -> Array:
+    """The pixels of ``body`` in the component (``labels``) of its pixel nearest the
+    window's centre."""
     h, w = body.shape
     centre, found = dk.nearest_true(body, jnp.asarray([[(h - 1) / 2, (w - 1) / 2]]))
     anchor = labels[centre[0, 0], centre[0, 1]]
     return body & (labels == anchor) & found[0]
+
+
+def _joined_at_depth(
+    config: PointConfig, d: Array, body: Array, tscale: Array, target_depth: Array
+) -> Array:
+    """The pixels of ``body`` in the groups joined through edges of at most
+    ``joined_max_dz_mm`` whose mean depth lies within ``anchor_max_dz_mm`` of
+    ``target_depth []`` mm (the tracked person's depth: someone passing in front is nearer,
+    someone behind farther, by more than a body's thickness); the centre's group
+    (``_joined_to_centre``) when no group is there (an unknown depth, 0, matches none)."""
+    labels = _joined_labels(config, d, body, tscale)
+    z = gk.component_mean(labels, d, body)
+    at = body & (jnp.abs(z - target_depth) <= config.anchor_max_dz_mm)
+    return jnp.where(jnp.any(at), at, _group_at_centre(body, labels))
 
 
 def body_centroid(body: Array) -> Array:
@@ -211,11 +266,16 @@ class Surface(NamedTuple):
 
 
 def segment_body(
-    config: PointConfig, depth: Array, box: Array, foreground: Array | None = None
+    config: PointConfig,
+    depth: Array,
+    box: Array,
+    foreground: Array | None = None,
+    target_depth: Array | None = None,
 ) -> Segmentation:
     """The body in the ``config.window`` window cut around ``box`` (xywh) of ``depth [H, W]``
     (uint16 mm): holes filled (thesis 4.1.1), back-projected, floor removed, segmented
-    (4.1.2); ``foreground [H, W] bool`` (optional) limits the body to foreground pixels."""
+    (4.1.2); ``foreground [H, W] bool`` (optional) limits the body to foreground pixels, and
+    ``target_depth []`` mm (optional, 0: unknown) anchors it (``PointConfig.joined_anchor``)."""
     d, win, rows, cols, roi = dk.crop_window(depth, box, config.window, config.box_margin)
     d = dk.fill_holes(d, roi)
     valid = d > 0
@@ -231,7 +291,7 @@ def segment_body(
     pts = dk.back_project(d, rows, cols, config.intrinsics)
     if config.floor_max_tilt_deg is not None:
         valid = _without_floor(config, pts, valid, tscale)
-    body = _segment(config, d, roi, valid, tscale)
+    body = _segment(config, d, roi, valid, tscale, target_depth)
     return Segmentation(win, rows, cols, d, pts, body, tscale)
 
 
@@ -262,12 +322,16 @@ def body_geodesics(
 
 
 def body_model(
-    config: PointConfig, depth: Array, box: Array, foreground: Array | None = None
+    config: PointConfig,
+    depth: Array,
+    box: Array,
+    foreground: Array | None = None,
+    target_depth: Array | None = None,
 ) -> BodyModel:
     """The segmented body of ``depth [H, W]`` (uint16 mm) in the window around ``box``
     (xywh), with its surface and geodesic distances: ``segment_body``, then
     ``body_surface_graph``, then ``body_geodesics``."""
-    seg = segment_body(config, depth, box, foreground)
+    seg = segment_body(config, depth, box, foreground, target_depth)
     surface = body_surface_graph(config, seg)
     ref_pix, geo, sweeps = body_geodesics(config, seg, surface)
     return assemble_body(seg, surface, ref_pix, geo, sweeps)

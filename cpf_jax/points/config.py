@@ -11,6 +11,7 @@ __all__ = [
     "AUTO_POINTS",
     "BODY_POINTS",
     "BODY_POINT_DEPTH_OFFSET_MM",
+    "JOINED_ANCHORS",
     "REFERENCES",
     "VISIBILITIES",
     "WEIGHTINGS",
@@ -19,6 +20,7 @@ __all__ = [
 
 WEIGHTINGS = ("spin", "geodesic", "combined")
 VISIBILITIES = ("off", "report", "particles")
+JOINED_ANCHORS = ("centre", "depth")
 #: The body points tracked by default (names of ``SyntheticSequence.joint_names``).
 BODY_POINTS = ("head", "left_hand", "right_hand", "left_foot", "right_foot")
 #: mm from the surface under each of ``BODY_POINTS`` to the joint centre behind it
@@ -74,6 +76,17 @@ class PointConfig:
     # at most this depth step (mm at ``threshold_depth_mm``), to the one nearest the box's
     # centre; None: all of them (other people in the box stay in).
     joined_max_dz_mm: float | None = None
+    # With ``joined_max_dz_mm``: which joined groups are the tracked person's. "centre", the
+    # group of the pixel nearest the box's centre; "depth", every group whose mean depth lies
+    # within ``anchor_max_dz_mm`` of the target's depth (``PointFrame.target_depth``, layer
+    # 1's depth templates in the cascade; the box's centre lies on whoever passes in front),
+    # the centre's group when no depth is given or no group is there.
+    joined_anchor: str = "centre"
+    anchor_max_dz_mm: float = 300.0
+    # With ``joined_anchor="depth"``: a component is sizeable against the largest one at the
+    # target's depth rather than the largest in the window (a target mostly hidden by
+    # someone nearer shows only small pieces).
+    anchor_sizeable: bool = False
     patch_radius: int = 32  # window pixels visited per spin image (see kernels.spin)
     spin_batch: int = 32  # distinct query pixels per spin-image loop step
     follow_box: bool = True
@@ -122,6 +135,12 @@ class PointConfig:
             raise ValueError("min_component_fraction must be in (0, 1] or None")
         if self.joined_max_dz_mm is not None and self.joined_max_dz_mm <= 0:
             raise ValueError(f"joined_max_dz_mm must be > 0 or None, got {self.joined_max_dz_mm}")
+        if self.joined_anchor not in JOINED_ANCHORS:
+            raise ValueError(
+                f"joined_anchor must be one of {JOINED_ANCHORS}, got {self.joined_anchor!r}"
+            )
+        if self.anchor_max_dz_mm <= 0:
+            raise ValueError(f"anchor_max_dz_mm must be > 0, got {self.anchor_max_dz_mm}")
         if self.geodesic_max_dist_mm is not None and self.geodesic_max_dist_mm <= 0:
             raise ValueError(
                 f"geodesic_max_dist_mm must be > 0 or None, got {self.geodesic_max_dist_mm}"

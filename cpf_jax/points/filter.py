@@ -156,11 +156,13 @@ def default_point_params() -> PointParams:
 class PointFrame(NamedTuple):
     """One frame for the point filter: ``depth [H, W] uint16`` mm (0 = missing), layer 1's
     ``box [4]`` xywh, and optionally ``foreground [H, W] bool`` (only foreground pixels
-    can be the body)."""
+    can be the body) and the target's depth ``target_depth []`` mm (0: unknown), which
+    anchors the body (``PointConfig.joined_anchor``)."""
 
     depth: Array
     box: Array
     foreground: Array | None = None
+    target_depth: Array | None = None
 
 
 class PointState(NamedTuple):
@@ -243,7 +245,7 @@ def point_init(
     check_intrinsics(config.intrinsics, frame.depth.shape[:2], "PointConfig.intrinsics")
     points = jnp.asarray(context.points, jnp.float32)
     p = points.shape[0]
-    bm = body_model(config, frame.depth, box, frame.foreground)
+    bm = body_model(config, frame.depth, box, frame.foreground, frame.target_depth)
     rc, inside = window_pixels(bm, points, config.window)
     on = inside & bm.body[rc[:, 0], rc[:, 1]]
     on = on & bm.spin_valid[rc[:, 0], rc[:, 1]]
@@ -602,7 +604,7 @@ def point_step(
     p = state.particles.shape[0]
     k_pos, k_vel, k_vis, k_acq, k_rec, k_res = jax.random.split(key, 6)
     box = jnp.asarray(frame.box, jnp.float32)
-    bm = body_model(config, frame.depth, box, frame.foreground)
+    bm = body_model(config, frame.depth, box, frame.foreground, frame.target_depth)
     xy, vel, hidden, shown, prev_est, z_pred = point_predict(
         config, params, (k_pos, k_vel, k_vis), state, box
     )
