@@ -634,7 +634,7 @@ def test_reports_the_weights_before_resampling_when_asked(toy):
     cfg = _config("grid-occlusion")
     filt, params = build_rgbd_filter(cfg), default_rgbd_params(cfg)
     f0 = Frame(frames.colour[0], frames.depth[0])
-    state = filt.init(params, jax.random.PRNGKey(0), f0, gt[0], Context(background=bg))
+    state = jax.jit(filt.init)(params, jax.random.PRNGKey(0), f0, gt[0], Context(background=bg))
     later = [Frame(frames.colour[t], frames.depth[t]) for t in range(1, 4)]
     reporting = build_rgbd_filter(dataclasses.replace(cfg, report_weights=True))
     check_weighed_cloud(filt, reporting, params, state, later, "grid-occlusion")
@@ -653,7 +653,7 @@ def test_scan_vmap_and_no_retracing(toy):
 
     jstep = jax.jit(step)
     context = Context(background=bg)
-    state = filt.init(
+    state = jax.jit(filt.init)(
         params, jax.random.PRNGKey(0), Frame(frames.colour[0], frames.depth[0]), gt[0], context
     )
     assert isinstance(state, RGBDState)
@@ -705,7 +705,7 @@ def test_rgb_row_is_the_colour_layer_through_the_one_track(toy):
     assert boxes.shape == (5, 4) and lost.shape == (5,) and not np.asarray(lost).any()
     np.testing.assert_array_equal(np.asarray(boxes[0]), gt[0])
     k_init, k_run = jax.random.split(key)
-    state = filt.init(params, k_init, Frame(short.colour[0], short.depth[0]), gt[0])
+    state = jax.jit(filt.init)(params, k_init, Frame(short.colour[0], short.depth[0]), gt[0])
     step = jax.jit(filt.step)
     for t, k in enumerate(jax.random.split(k_run, 4)):
         state, info = step(params, k, state, Frame(short.colour[t + 1], short.depth[t + 1]))
@@ -723,7 +723,7 @@ def test_spreading_while_occluded(toy):
     filt = build_rgbd_filter(cfg)
     params = default_rgbd_params(cfg)
     f0 = Frame(frames.colour[0], frames.depth[0])
-    state = filt.init(params, jax.random.PRNGKey(0), f0, gt[0], Context(background=bg))
+    state = jax.jit(filt.init)(params, jax.random.PRNGKey(0), f0, gt[0], Context(background=bg))
     step = jax.jit(filt.step)
     spreads = []
     for occluded in (0, 20):
@@ -742,7 +742,7 @@ def test_template_update_only_in_cells_voted_visible(toy):
     colour = params.colour._replace(rate=jnp.float32(0.5), sigma=jnp.float32(SIGMA_RGB_TEST))
     params = params._replace(colour=colour)
     step = jax.jit(filt.step)
-    state = filt.init(
+    state = jax.jit(filt.init)(
         params,
         jax.random.PRNGKey(0),
         Frame(frames.colour[0], frames.depth[0]),
@@ -771,7 +771,7 @@ def test_body_template_learns_a_running_mean_then_slowly_and_never_while_occlude
     params = params._replace(colour=params.colour._replace(sigma=jnp.float32(SIGMA_RGB_TEST)))
     step = jax.jit(filt.step)
     obs_of = jax.jit(lambda f, b: observe(cfg, params.foreground, f, b))
-    state = filt.init(
+    state = jax.jit(filt.init)(
         params,
         jax.random.PRNGKey(0),
         Frame(frames.colour[0], frames.depth[0]),
@@ -1486,7 +1486,7 @@ def _step_with_templates(depth_of_box: np.ndarray, age: float):
     )
     frame = Frame(jnp.asarray(colour), jnp.asarray(depth))
     box = jnp.asarray(TEMPLATE_BOX, jnp.float32)
-    state = filt.init(params, jax.random.PRNGKey(0), frame, box, Context(background=bg))
+    state = jax.jit(filt.init)(params, jax.random.PRNGKey(0), frame, box, Context(background=bg))
     c = cfg.n_cells
     state = state._replace(
         depth=state.depth._replace(

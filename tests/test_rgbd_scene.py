@@ -31,7 +31,9 @@ def _success(config: RGBDConfig, seq) -> float:
 @pytest.mark.parametrize(
     ("name", "motion"),
     [
-        ("walk_towards", None),
+        # The walker without background frames and a still camera is also tracked by
+        # experiments/rgbd_scene.py; kept out of the suite's 15 minutes.
+        pytest.param("walk_towards", None, marks=pytest.mark.slow),
         ("walk_across_medium", CameraMotion(crop=0.8, pan_px=(1.5, 0.3), shake_px=2.0)),
     ],
 )
